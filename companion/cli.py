@@ -1,0 +1,94 @@
+"""Command line of the companion: ``python -m companion {run,replay,info,diagnose}``.
+
+Each subcommand's work lives in its own module (``live``, ``replay``, ``info``, ``diagnose``);
+this file only declares the arguments and turns errors into one clear line and an exit code.
+Set FLOWHOLD_DEBUG=1 to see the traceback of an unexpected error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Callable, Sequence
+
+from companion.errors import ExitCode, FlowholdError
+
+PROFILES = ("paper", "ardupilot", "px4")
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", help="parameter set (TOML); default configs/paper.toml (Table VI)")
+    p.add_argument("--profile", choices=PROFILES,
+                   help="sensor message convention (CONVENTIONS.md); default: detected from the recording")
+
+
+def _add_recording(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", help=".tlog, DataFlash .bin, PX4 .ulg, or CSV (with --sensor-config)")
+    p.add_argument("--sensor-config", help="column map (TOML in configs/sensors/) for a CSV recording")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m companion",
+        description="Optical-flow velocity hold beside an autopilot: live loop, replay, info, diagnose.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,replay,info,diagnose}")
+
+    run = sub.add_parser("run", help="run the velocity-hold loop against a vehicle over MAVLink")
+    run.add_argument("--connect", required=True,
+                     help="pymavlink URL: udpout:127.0.0.1:14550, udpin:0.0.0.0:14550, tcp:HOST:PORT, /dev/ttyUSB0,921600")
+    _add_common(run)
+    run.add_argument("--arm", action="store_true", help="switch to GUIDED_NOGPS and arm (simulators only)")
+    run.add_argument("--setpoint", help="constant body-frame velocity setpoint VX,VY in m/s")
+    run.add_argument("--tlog", help="record everything sent and received to this .tlog")
+    run.add_argument("--vehicle-sysid", type=int, help="accept sensor data only from this system id "
+                     "(default: the first autopilot heard)")
+    run.add_argument("--signing-key", help="MAVLink 2 signing: a passphrase or a file holding the key")
+    run.add_argument("--duration", type=float, help="stop after this many seconds of control")
+    run.add_argument("--quiet", action="store_true", help="no console status line")
+
+    replay = sub.add_parser("replay", help="run the estimator and controller over a recording")
+    _add_recording(replay)
+    _add_common(replay)
+    replay.add_argument("--csv", required=True, help="output CSV, one row per flow frame")
+    replay.add_argument("--plot", help="PNG of setpoint, estimate, truth, commands and flow counts")
+
+    info = sub.add_parser("info", help="summarise a recording")
+    _add_recording(info)
+    info.add_argument("--json", help="also write the summary as JSON here")
+
+    diag = sub.add_parser("diagnose", help="find where the model and a recording differ, and why")
+    _add_recording(diag)
+    _add_common(diag)
+    diag.add_argument("--json", help="write the mismatch report (CONVENTIONS.md) here")
+    diag.add_argument("--report", help="write a Markdown report with plots into this folder")
+    return parser
+
+
+def _dispatch(command: str) -> Callable[[argparse.Namespace], int]:
+    if command == "run":
+        from companion.live import run_cli
+    elif command == "replay":
+        from companion.replay import run_cli
+    elif command == "info":
+        from companion.info import run_cli
+    else:
+        from companion.diagnose import run_cli
+    return run_cli
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(_dispatch(args.command)(args))
+    except FlowholdError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return int(exc.exit_code)
+    except KeyboardInterrupt:
+        print("stopped", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the last line of defence: one line, no traceback
+        if os.environ.get("FLOWHOLD_DEBUG"):
+            raise
+        print(f"error: {type(exc).__name__}: {exc} (set FLOWHOLD_DEBUG=1 for details)", file=sys.stderr)
+        return int(ExitCode.FAILURE)

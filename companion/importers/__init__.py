@@ -1,0 +1,1 @@
+"""Importers of third-party logs into the columnar ``Recording``."""

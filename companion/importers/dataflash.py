@@ -1,0 +1,529 @@
+"""ArduPilot DataFlash logs (.bin) into the columnar ``Recording``, in MAVLink names and units.
+
+The tables come out as if ArduPilot had streamed them over MAVLink, so the ``ardupilot`` profile
+of CONVENTIONS.md applies unchanged (``profile_hint = "ardupilot"``). Mapping (docs/importers.md
+has the references):
+
+| DataFlash | unit, sign | table.field |
+|---|---|---|
+| OF.TimeUS | us | OPTICAL_FLOW.time_usec = TimeUS / 1000 (**ms**, as ArduPilot's MAVLink stream) |
+| OF.flowX, flowY | rad/s, RH rotation of the sensor gives + | flow_rate_x, flow_rate_y (as is) |
+| OF.bodyX, bodyY | rad/s, body gyro | flow_comp_m_x/y = flowX - bodyX, flowY - bodyY (as ArduPilot) |
+| OF.Qual | 0-255 | quality; flow_x = flow_y = 0; ground_distance = -1 (unknown) |
+| IMU (I = 0) or GYR | rad/s, m/s^2, FRD | RAW_IMU x/y/zgyro mrad/s, x/y/zacc milli-g, time_usec us |
+| RFND.Dist, Orient | m, Rotation enum | DISTANCE_SENSOR current_distance cm, orientation (25 = down) |
+| PARM RNGFNDn_MIN/MAX | m (or *_CM in cm) | DISTANCE_SENSOR min_distance, max_distance cm |
+| ATT.Roll, Pitch, Yaw | deg (Yaw 0-360) | ATTITUDE roll, pitch, yaw rad (yaw wrapped to [-pi, pi)) |
+| RATE.R, P, Y | deg/s | ATTITUDE rollspeed.. rad/s (nearest RATE row) and table RATE (rad/s) |
+| ATT.DesRoll, DesPitch, DesYaw | deg | ATTITUDE_TARGET q = [w, x, y, z] (ZYX Euler) |
+| RATE.RDes, PDes, YDes | deg/s | ATTITUDE_TARGET body_roll_rate.. rad/s |
+
+Every table's ``t_s`` is the log's ``TimeUS`` in seconds (boot time); ``record`` orders all rows
+of all tables by time (ties: file position); sysid 1, compid 1. pymavlink's ``DFReader``
+indexes the file (formats and message offsets, robust to corrupt stretches); the columns are
+then decoded with numpy in one pass per message type.
+
+The helpers at the bottom (``build_table``, ``assign_records``, quaternion conversions,
+``nearest_index``) are shared with ``companion.importers.ulog``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from companion.errors import RecordingError
+from companion.recording import MessageTable, Recording
+
+#: standard gravity used by ArduPilot (GRAVITY_MSS) for RAW_IMU milli-g
+GRAVITY_M_S2 = 9.80665
+#: MAV_SENSOR_ORIENTATION / ArduPilot Rotation: ROTATION_PITCH_270, facing down
+ORIENTATION_DOWN = 25
+#: MAV_DISTANCE_SENSOR_UNKNOWN
+DISTANCE_SENSOR_TYPE_UNKNOWN = 4
+#: ArduPilot RangeFinder::Status::Good
+RFND_STATUS_GOOD = 4
+
+_HEAD = b"\xa3\x95"
+_FMT_ID = 0x80
+
+#: DataFlash format character -> (numpy dtype, multiplier DFReader applies). Matches
+#: pymavlink.DFReader.FORMAT_TO_STRUCT ('a' is int16[32]).
+_DF_TYPES: dict[str, tuple[str | tuple[str, tuple[int]], float | None]] = {
+    "a": (("<i2", (32,)), None),
+    "b": ("i1", None),
+    "B": ("u1", None),
+    "g": ("<f2", None),
+    "h": ("<i2", None),
+    "H": ("<u2", None),
+    "i": ("<i4", None),
+    "I": ("<u4", None),
+    "f": ("<f4", None),
+    "d": ("<f8", None),
+    "n": ("S4", None),
+    "N": ("S16", None),
+    "Z": ("S64", None),
+    "c": ("<i2", 0.01),
+    "C": ("<u2", 0.01),
+    "e": ("<i4", 0.01),
+    "E": ("<u4", 0.01),
+    "L": ("<i4", 1.0e-7),
+    "M": ("i1", None),
+    "q": ("<i8", None),
+    "Q": ("<u8", None),
+}
+
+Columns = dict[str, np.ndarray]
+
+
+def read_dataflash(path: str | Path) -> Recording:
+    """Read an ArduPilot DataFlash log into MAVLink-named tables (see the module table).
+
+    Raises ``RecordingError`` (one line) when the file is missing, is not a DataFlash log, or
+    holds no usable optical flow (OF). Missing gyro, range or attitude are skipped with a note.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise RecordingError(f"recording not found: {p}")
+    data = np.fromfile(p, dtype=np.uint8)
+    if data.size == 0:
+        raise RecordingError(f"{p.name}: empty file, not a DataFlash log")
+    if bytes(data[:3]) != _HEAD + bytes([_FMT_ID]):
+        raise RecordingError(
+            f"{p.name}: not an ArduPilot DataFlash log (no 0xA3 0x95 FMT header at the start)")
+    messages, skipped = _index(p, data)
+    notes: list[str] = []
+    if skipped:
+        notes.append(f"DataFlash: {skipped} bytes outside complete messages skipped "
+                     "(corrupt or truncated log)")
+
+    def take(name: str) -> tuple[Columns, np.ndarray] | None:
+        got = messages.get(name)
+        if got is None or len(got[1]) == 0:
+            return None
+        return got
+
+    of = take("OF")
+    if of is None:
+        raise RecordingError(f"{p.name}: no OF (optical flow) messages in the DataFlash log")
+    tables: dict[str, MessageTable] = {}
+    order_keys: dict[str, np.ndarray] = {}
+
+    def add(table: MessageTable, key: np.ndarray) -> None:
+        tables[table.name] = table
+        order_keys[table.name] = key
+
+    add(*_optical_flow(p.name, *of))
+
+    gyro = _raw_imu(take("IMU"), take("GYR"), notes)
+    if gyro is not None:
+        add(*gyro)
+
+    params = _params(take("PARM"))
+    rfnd = take("RFND")
+    if rfnd is None:
+        notes.append("no RFND messages: range missing")
+    else:
+        add(*_distance_sensor(*rfnd, params, notes))
+
+    att = take("ATT")
+    rate = take("RATE")
+    if att is None:
+        notes.append("no ATT messages: attitude and attitude target missing")
+    else:
+        for table, key in _attitude(*att, rate, notes):
+            add(table, key)
+    if rate is None:
+        notes.append("no RATE messages: ATTITUDE rates and ATTITUDE_TARGET body rates are NaN")
+    else:
+        add(*_rate_table(*rate))
+
+    assign_records(tables, order_keys, notes)
+    return Recording(
+        path=str(p),
+        tables=tables,
+        source_format="dataflash",
+        skipped_bytes=int(skipped),
+        notes=notes,
+        profile_hint="ardupilot",
+    )
+
+
+# --------------------------------------------------------------------------- file decoding
+
+
+def _index(p: Path, data: np.ndarray) -> tuple[dict[str, tuple[Columns, np.ndarray]], int]:
+    """Index the file with pymavlink's DFReader and decode the messages this importer uses.
+
+    Returns ``{name: (columns, file_offsets)}`` and the number of bytes that lie outside
+    complete messages (corruption, truncation).
+    """
+    from pymavlink import DFReader
+
+    wanted = ("OF", "IMU", "GYR", "RFND", "ATT", "RATE", "PARM")
+    sink = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(sink), contextlib.redirect_stdout(sink):
+            reader = DFReader.DFReader_binary(str(p), zero_time_base=True)
+    except Exception as exc:  # DFReader raises bare Exceptions on malformed FMT records
+        raise RecordingError(f"{p.name}: DataFlash log could not be indexed ({exc})") from None
+    try:
+        formats = dict(reader.formats)
+        offsets = [np.asarray(o, dtype=np.int64) for o in reader.offsets]
+    finally:
+        with contextlib.suppress(Exception):
+            reader.close()
+    used = 0
+    out: dict[str, tuple[Columns, np.ndarray]] = {}
+    for type_id, fmt in formats.items():
+        ofs = offsets[type_id] if type_id < len(offsets) else np.zeros(0, np.int64)
+        ofs = ofs[ofs + fmt.len <= data.size]
+        used += len(ofs) * fmt.len
+        if fmt.name in wanted and len(ofs):
+            out[fmt.name] = (decode_messages(data, ofs, fmt.format, list(fmt.columns), fmt.len), ofs)
+    return out, max(0, int(data.size) - used)
+
+
+def decode_messages(data: np.ndarray, offsets: np.ndarray, fmt: str, columns: list[str],
+                    length: int) -> Columns:
+    """Decode all messages of one DataFlash type at ``offsets`` (bytes from the file start,
+    each at its 3-byte header) into columns, applying DFReader's multipliers (c/C/e/E x0.01,
+    L x1e-7) and decoding strings. ``length``: FMT.Length, header included."""
+    if len(fmt) != len(columns):
+        raise RecordingError(f"DataFlash FMT mismatch: {len(fmt)} types for {len(columns)} columns")
+    names = [_unique(c, i, columns) for i, c in enumerate(columns)]
+    try:
+        dtype = np.dtype([(n, _DF_TYPES[ch][0]) for n, ch in zip(names, fmt, strict=True)])
+    except KeyError as exc:
+        raise RecordingError(f"DataFlash format character {exc} is not supported") from None
+    if dtype.itemsize != length - 3:
+        raise RecordingError(f"DataFlash FMT length {length} does not match format {fmt!r}")
+    if len(offsets) == 0:
+        return {c: np.zeros(0) for c in columns}
+    window = np.lib.stride_tricks.sliding_window_view(data, dtype.itemsize)
+    rows = np.ascontiguousarray(window[offsets + 3]).view(dtype).reshape(-1)
+    cols: Columns = {}
+    for col, name, ch in zip(columns, names, fmt, strict=True):
+        v = rows[name]
+        mult = _DF_TYPES[ch][1]
+        if mult is not None:
+            v = v.astype(np.float64) * mult
+        elif ch in "nNZ":
+            v = np.array([s.split(b"\0", 1)[0].decode("ascii", "replace") for s in v], dtype=object)
+        cols[col] = np.array(v)
+    return cols
+
+
+def _unique(col: str, i: int, columns: list[str]) -> str:
+    return col if columns.index(col) == i else f"{col}__{i}"
+
+
+def _need(cols: Columns, name: str, fields: tuple[str, ...], what: str) -> None:
+    missing = [f for f in fields if f not in cols]
+    if missing:
+        raise RecordingError(f"{what}: {name} messages lack {', '.join(missing)} (unsupported log layout)")
+
+
+# --------------------------------------------------------------------------- message mapping
+
+
+def _optical_flow(fname: str, c: Columns, ofs: np.ndarray) -> tuple[MessageTable, np.ndarray]:
+    """OF -> OPTICAL_FLOW in the ardupilot profile's MAVLink semantics."""
+    _need(c, "OF", ("TimeUS", "Qual", "flowX", "flowY", "bodyX", "bodyY"), fname)
+    t_us = c["TimeUS"].astype(np.int64)
+    fx = c["flowX"].astype(np.float64)
+    fy = c["flowY"].astype(np.float64)
+    n = len(t_us)
+    fields = {
+        "time_usec": t_us / 1000.0,  # milliseconds, as ArduPilot's OPTICAL_FLOW stream
+        "sensor_id": np.zeros(n, np.uint8),
+        "flow_x": np.zeros(n, np.int16),
+        "flow_y": np.zeros(n, np.int16),
+        "flow_comp_m_x": fx - c["bodyX"].astype(np.float64),
+        "flow_comp_m_y": fy - c["bodyY"].astype(np.float64),
+        "quality": c["Qual"].astype(np.uint8),
+        "ground_distance": np.full(n, -1.0),
+        "flow_rate_x": fx,
+        "flow_rate_y": fy,
+    }
+    return build_table("OPTICAL_FLOW", t_us * 1e-6, fields), ofs
+
+
+def _first_instance(c: Columns, ofs: np.ndarray, name: str, notes: list[str]) -> tuple[Columns, np.ndarray]:
+    """Rows of instance 0 when the message carries an instance field ``I``."""
+    if "I" not in c:
+        return c, ofs
+    inst = c["I"]
+    present = np.unique(inst)
+    if len(present) > 1:
+        notes.append(f"{name}: instances {present.tolist()} present, using I=0")
+    mask = inst == 0
+    if not mask.any():
+        mask = inst == present[0]
+        notes.append(f"{name}: no instance 0, using I={int(present[0])}")
+    return {k: v[mask] for k, v in c.items()}, ofs[mask]
+
+
+def _raw_imu(imu: tuple[Columns, np.ndarray] | None, gyr: tuple[Columns, np.ndarray] | None,
+             notes: list[str]) -> tuple[MessageTable, np.ndarray] | None:
+    """IMU (preferred) or GYR -> RAW_IMU: gyro mrad/s, accel milli-g, time_usec us."""
+    if imu is not None:
+        c, ofs = _first_instance(*imu, "IMU", notes)
+        _need(c, "IMU", ("TimeUS", "GyrX", "GyrY", "GyrZ"), "DataFlash")
+        t_us = c["TimeUS"].astype(np.int64)
+        fields: Columns = {"time_usec": t_us}
+        for ax in "XYZ":
+            acc = c.get(f"Acc{ax}")
+            fields[f"{ax.lower()}acc"] = (acc.astype(np.float64) / GRAVITY_M_S2 * 1000.0 if acc is not None
+                                          else np.full(len(t_us), np.nan))
+        for ax in "XYZ":
+            fields[f"{ax.lower()}gyro"] = c[f"Gyr{ax}"].astype(np.float64) * 1000.0
+        fields["id"] = np.zeros(len(t_us), np.uint8)
+        if "T" in c:
+            fields["temperature"] = c["T"].astype(np.float64) * 100.0
+        return build_table("RAW_IMU", t_us * 1e-6, fields), ofs
+    if gyr is not None:
+        c, ofs = _first_instance(*gyr, "GYR", notes)
+        _need(c, "GYR", ("TimeUS", "GyrX", "GyrY", "GyrZ"), "DataFlash")
+        t_us = c["TimeUS"].astype(np.int64)
+        sample_us = c["SampleUS"].astype(np.int64) if "SampleUS" in c else t_us
+        n = len(t_us)
+        fields = {"time_usec": sample_us}
+        for ax in "xyz":
+            fields[f"{ax}acc"] = np.full(n, np.nan)
+        for ax in "XYZ":
+            fields[f"{ax.lower()}gyro"] = c[f"Gyr{ax}"].astype(np.float64) * 1000.0
+        fields["id"] = np.zeros(n, np.uint8)
+        notes.append("no IMU messages: RAW_IMU from GYR (raw gyro samples), accelerations NaN")
+        return build_table("RAW_IMU", t_us * 1e-6, fields), ofs
+    notes.append("no IMU or GYR messages: gyro missing")
+    return None
+
+
+def _params(parm: tuple[Columns, np.ndarray] | None) -> dict[str, float]:
+    """PARM rows -> {name: last logged value}."""
+    if parm is None or "Name" not in parm[0] or "Value" not in parm[0]:
+        return {}
+    return {str(n): float(v) for n, v in zip(parm[0]["Name"], parm[0]["Value"], strict=True)}
+
+
+def _range_limits_cm(params: Mapping[str, float], instance: int) -> tuple[float, float] | None:
+    """(min, max) in cm from RNGFNDn_MIN/_MAX (m, ArduPilot 4.6+) or RNGFNDn_MIN_CM/_MAX_CM
+    (cm, older; the first sensor was RNGFND_* before multi-rangefinder support)."""
+    prefixes = [f"RNGFND{instance + 1}"] + (["RNGFND"] if instance == 0 else [])
+    for pre in prefixes:
+        # PARM values are float32: round away the representation noise (0.2 m -> 20.0000003 cm)
+        if f"{pre}_MIN" in params and f"{pre}_MAX" in params:
+            return round(params[f"{pre}_MIN"] * 100.0, 3), round(params[f"{pre}_MAX"] * 100.0, 3)
+        if f"{pre}_MIN_CM" in params and f"{pre}_MAX_CM" in params:
+            return round(params[f"{pre}_MIN_CM"], 3), round(params[f"{pre}_MAX_CM"], 3)
+    return None
+
+
+def _distance_sensor(c: Columns, ofs: np.ndarray, params: Mapping[str, float],
+                     notes: list[str]) -> tuple[MessageTable, np.ndarray]:
+    """RFND -> DISTANCE_SENSOR (cm). Handles the current layout (Instance, Dist, Stat, Orient)
+    and the pre-4.0 two-sensor layout (Dist1, Orient1, Dist2, Orient2)."""
+    if "Dist" in c:
+        _need(c, "RFND", ("TimeUS", "Dist", "Orient"), "DataFlash")
+        t_us = c["TimeUS"].astype(np.int64)
+        inst = c["Instance"].astype(np.int64) if "Instance" in c else np.zeros(len(t_us), np.int64)
+        dist_m = c["Dist"].astype(np.float64)
+        orient = c["Orient"].astype(np.int64)
+        status = c["Stat"].astype(np.int64) if "Stat" in c else None
+        quality = c["Quality"].astype(np.int64) if "Quality" in c else None
+    elif "Dist1" in c:
+        _need(c, "RFND", ("TimeUS", "Dist1", "Orient1"), "DataFlash")
+        t1 = c["TimeUS"].astype(np.int64)
+        parts = [(t1, np.zeros_like(t1), c["Dist1"], c["Orient1"], ofs)]
+        if "Dist2" in c and np.any(c["Dist2"] > 0):
+            parts.append((t1, np.ones_like(t1), c["Dist2"], c["Orient2"], ofs))
+        t_us, inst, dist_m, orient, ofs = (np.concatenate([p[i] for p in parts]) for i in range(5))
+        dist_m = dist_m.astype(np.float64)
+        orient = orient.astype(np.int64)
+        status = quality = None
+    else:
+        raise RecordingError("DataFlash: RFND messages lack Dist (unsupported log layout)")
+    n = len(t_us)
+    min_cm = np.zeros(n)
+    max_cm = np.zeros(n)
+    for i in np.unique(inst):
+        sel = inst == i
+        limits = _range_limits_cm(params, int(i))
+        if limits is None:
+            limits = (0.0, float(np.ceil(np.nanmax(dist_m[sel]) * 100.0)))
+            notes.append(f"RFND instance {int(i)}: no RNGFND{int(i) + 1}_MIN/_MAX parameters, "
+                         f"range limits taken from the data (0-{limits[1]:.0f} cm)")
+        min_cm[sel], max_cm[sel] = limits
+    if status is None:
+        signal_quality = np.zeros(n, np.uint8)
+    else:
+        good_q = np.clip(quality, 0, 100) if quality is not None else np.zeros(n, np.int64)
+        signal_quality = np.where(status == RFND_STATUS_GOOD, good_q, 1).astype(np.uint8)
+    fields = {
+        "time_boot_ms": t_us / 1000.0,
+        "min_distance": min_cm,
+        "max_distance": max_cm,
+        "current_distance": dist_m * 100.0,
+        "type": np.full(n, DISTANCE_SENSOR_TYPE_UNKNOWN, np.uint8),
+        "id": inst.astype(np.uint8),
+        "orientation": orient.astype(np.uint8),
+        "covariance": np.full(n, 255, np.uint8),
+        "signal_quality": signal_quality,
+    }
+    order = np.argsort(t_us, kind="stable")
+    return build_table("DISTANCE_SENSOR", t_us * 1e-6, fields).select(order), ofs[order]
+
+
+def _attitude(c: Columns, ofs: np.ndarray, rate: tuple[Columns, np.ndarray] | None,
+              notes: list[str]) -> list[tuple[MessageTable, np.ndarray]]:
+    """ATT (+ the nearest RATE row) -> ATTITUDE and ATTITUDE_TARGET."""
+    _need(c, "ATT", ("TimeUS", "DesRoll", "Roll", "DesPitch", "Pitch", "DesYaw", "Yaw"), "DataFlash")
+    t_us = c["TimeUS"].astype(np.int64)
+    t_s = t_us * 1e-6
+    n = len(t_us)
+    deg = np.deg2rad
+    rates = {k: np.full(n, np.nan) for k in ("R", "P", "Y", "RDes", "PDes", "YDes")}
+    if rate is not None:
+        rc = rate[0]
+        _need(rc, "RATE", ("TimeUS", "RDes", "R", "PDes", "P", "YDes", "Y"), "DataFlash")
+        rt = rc["TimeUS"].astype(np.int64) * 1e-6
+        idx = nearest_index(rt, t_s, _median_spacing(t_s, cap_s=0.02) / 2.0)
+        hit = idx >= 0
+        for k in rates:
+            rates[k][hit] = deg(rc[k].astype(np.float64)[idx[hit]])
+        if not hit.all():
+            notes.append(f"ATT: {int((~hit).sum())} of {n} rows have no RATE row within half an ATT "
+                         "period: their rates are NaN")
+    attitude = {
+        "time_boot_ms": t_us / 1000.0,
+        "roll": deg(c["Roll"].astype(np.float64)),
+        "pitch": deg(c["Pitch"].astype(np.float64)),
+        "yaw": wrap_pi(deg(c["Yaw"].astype(np.float64))),
+        "rollspeed": rates["R"],
+        "pitchspeed": rates["P"],
+        "yawspeed": rates["Y"],
+    }
+    have_rates = np.isfinite(rates["RDes"]) & np.isfinite(rates["PDes"]) & np.isfinite(rates["YDes"])
+    target = {
+        "time_boot_ms": t_us / 1000.0,
+        "type_mask": np.where(have_rates, 0, 7).astype(np.uint8),
+        "q": euler_to_quaternion(deg(c["DesRoll"].astype(np.float64)), deg(c["DesPitch"].astype(np.float64)),
+                                 wrap_pi(deg(c["DesYaw"].astype(np.float64)))),
+        "body_roll_rate": rates["RDes"],
+        "body_pitch_rate": rates["PDes"],
+        "body_yaw_rate": rates["YDes"],
+        "thrust": np.full(n, np.nan),
+    }
+    return [(build_table("ATTITUDE", t_s, attitude), ofs),
+            (build_table("ATTITUDE_TARGET", t_s, target), ofs)]
+
+
+def _rate_table(c: Columns, ofs: np.ndarray) -> tuple[MessageTable, np.ndarray]:
+    """RATE -> table RATE (not a MAVLink message): desired and achieved body rates, rad/s."""
+    t_us = c["TimeUS"].astype(np.int64)
+    fields: Columns = {"time_usec": t_us}
+    for axis, short in (("roll", "R"), ("pitch", "P"), ("yaw", "Y")):
+        fields[f"{axis}_rate_des_rad_s"] = np.deg2rad(c[f"{short}Des"].astype(np.float64))
+        fields[f"{axis}_rate_rad_s"] = np.deg2rad(c[short].astype(np.float64))
+    return build_table("RATE", t_us * 1e-6, fields), ofs
+
+
+# --------------------------------------------------------------------------- shared helpers
+
+
+def build_table(name: str, t_s: np.ndarray, fields: Columns, *, sysid: int = 1,
+                compid: int = 1) -> MessageTable:
+    """A MessageTable with ``t_s`` (s), sender ids and a placeholder ``record`` (set by
+    ``assign_records``)."""
+    n = len(t_s)
+    return MessageTable(
+        name=name,
+        t_s=np.asarray(t_s, dtype=np.float64),
+        sysid=np.full(n, sysid, np.uint8),
+        compid=np.full(n, compid, np.uint8),
+        record=np.arange(n, dtype=np.int64),
+        fields=fields,
+    )
+
+
+def assign_records(tables: dict[str, MessageTable], keys: Mapping[str, np.ndarray], notes: list[str]) -> None:
+    """Sort each table by (``t_s``, key) and number all rows of all tables in that order.
+
+    ``keys[name]``: a tie-break per row (e.g. the file offset), equal length to the table.
+    Rewrites ``tables`` in place; a table that was out of time order gets a note.
+    """
+    names = list(tables)
+    for name in names:
+        tab, key = tables[name], np.asarray(keys[name])
+        order = np.lexsort((key, tab.t_s))
+        moved = int(np.sum(order != np.arange(len(order))))
+        if moved:
+            notes.append(f"{name}: {moved} rows out of time order, sorted by time")
+            tables[name] = tab.select(order)
+            keys = {**keys, name: key[order]}
+    if not names:
+        return
+    t_all = np.concatenate([tables[n].t_s for n in names])
+    k_all = np.concatenate([np.asarray(keys[n], dtype=np.float64) for n in names])
+    which = np.concatenate([np.full(len(tables[n]), i) for i, n in enumerate(names)])
+    order = np.lexsort((which, k_all, t_all))
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    start = 0
+    for n in names:
+        stop = start + len(tables[n])
+        tables[n].record = rank[start:stop]
+        start = stop
+
+
+def nearest_index(t_ref: np.ndarray, t_query: np.ndarray, tol: float) -> np.ndarray:
+    """Index of the ``t_ref`` sample nearest to each ``t_query`` (both in the same unit,
+    ``t_ref`` sorted), or -1 where the nearest is farther than ``tol``."""
+    t_ref = np.asarray(t_ref, dtype=np.float64)
+    t_query = np.asarray(t_query, dtype=np.float64)
+    if len(t_ref) == 0:
+        return np.full(len(t_query), -1, np.int64)
+    hi = np.clip(np.searchsorted(t_ref, t_query), 0, len(t_ref) - 1)
+    lo = np.clip(hi - 1, 0, len(t_ref) - 1)
+    pick = np.where(np.abs(t_ref[lo] - t_query) <= np.abs(t_ref[hi] - t_query), lo, hi)
+    return np.where(np.abs(t_ref[pick] - t_query) <= tol, pick, -1).astype(np.int64)
+
+
+def _median_spacing(t: np.ndarray, cap_s: float) -> float:
+    d = np.diff(np.asarray(t, dtype=np.float64))
+    d = d[d > 0]
+    return float(min(np.median(d), cap_s)) if len(d) else cap_s
+
+
+def wrap_pi(a: np.ndarray) -> np.ndarray:
+    """Angles (rad) wrapped to [-pi, pi)."""
+    return (np.asarray(a, dtype=np.float64) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def euler_to_quaternion(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """ZYX (yaw, then pitch, then roll) Euler angles (rad) -> quaternions [w, x, y, z], shape (n, 4),
+    the MAVLink / PX4 / ArduPilot convention (body FRD relative to NED)."""
+    cr, sr = np.cos(np.asarray(roll) / 2), np.sin(np.asarray(roll) / 2)
+    cp, sp = np.cos(np.asarray(pitch) / 2), np.sin(np.asarray(pitch) / 2)
+    cy, sy = np.cos(np.asarray(yaw) / 2), np.sin(np.asarray(yaw) / 2)
+    return np.stack([
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    ], axis=-1)
+
+
+def quaternion_to_euler(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Quaternions [w, x, y, z], shape (n, 4) -> ZYX Euler (roll, pitch, yaw) in rad, yaw in [-pi, pi]."""
+    q = np.asarray(q, dtype=np.float64)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    roll = np.arctan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2.0 * (w * y - z * x), -1.0, 1.0))
+    yaw = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return roll, pitch, yaw

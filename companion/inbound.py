@@ -1,0 +1,90 @@
+"""Incoming MAVLink messages -> the companion core, in one place (live loop and scenarios).
+
+Units and signs are converted here and nowhere else: RAW_IMU / SCALED_IMU gyro mrad/s and
+HIGHRES_IMU rad/s -> rad/s; DISTANCE_SENSOR cm -> m (orientation 25 only); the flow message by
+the sensor profile (``companion.profiles``); velocity setpoints from SET_POSITION_TARGET_LOCAL_NED
+(body frames 8, 9, 12, or LOCAL_NED rotated by the vehicle's yaw) and MANUAL_CONTROL sticks.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from companion.core import CompanionCore, StepOutput
+from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FieldView, FlowColumns, Profile, flow_columns
+
+DOWNWARD = 25  # MAV_SENSOR_ROTATION_PITCH_270
+BODY_FRAMES = (8, 9, 12)  # MAV_FRAME_BODY_NED, BODY_OFFSET_NED, BODY_FRD
+LOCAL_NED = 1
+
+
+def scalar_flow(msg: Any, profile: Profile, q_rad_per_count: float) -> FlowColumns:
+    """One flow message as scalars in the paper's convention."""
+    c = flow_columns(FieldView(msg), profile, q_rad_per_count)
+    return FlowColumns(float(c.time_s), float(c.scene_x), float(c.scene_y), c.increment,
+                       float(c.integration_s), int(c.quality), float(c.counts_x), float(c.counts_y))
+
+
+@dataclass
+class MessageRouter:
+    """Feeds a vehicle's messages to a ``CompanionCore``; returns a step output per flow frame."""
+
+    core: CompanionCore
+    profile: Profile
+    vehicle_sysid: int | None = None
+    #: messages ignored, by reason (wrong sender, wrong orientation, bad values)
+    ignored: dict[str, int] = field(default_factory=dict)
+    yaw_rad: float = 0.0
+    last_setpoint_time: float | None = None
+
+    def _ignore(self, why: str) -> None:
+        self.ignored[why] = self.ignored.get(why, 0) + 1
+
+    def handle(self, msg: Any, now_s: float | None = None) -> StepOutput | None:
+        mtype = msg.get_type()
+        if mtype in ("SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL"):
+            self._setpoint(msg, mtype, now_s)
+            return None
+        if self.vehicle_sysid is not None and msg.get_srcSystem() != self.vehicle_sysid:
+            if mtype in GYRO_MESSAGES or mtype in ("DISTANCE_SENSOR", "OPTICAL_FLOW", "OPTICAL_FLOW_RAD"):
+                self._ignore("sensor data from another system")
+            return None
+        if mtype in GYRO_MESSAGES:
+            scale = GYRO_MESSAGES[mtype]
+            self.core.on_gyro(msg.time_usec * 1e-6, msg.xgyro * scale, msg.ygyro * scale)
+        elif mtype == "DISTANCE_SENSOR":
+            if msg.orientation != DOWNWARD:
+                self._ignore("range not facing down")
+                return None
+            r = msg.current_distance * 0.01
+            if not (msg.min_distance <= msg.current_distance <= msg.max_distance):
+                r = math.nan  # outside the sensor's own limits: invalid
+            self.core.on_range(msg.time_boot_ms * 1e-3, r)
+        elif mtype == "ATTITUDE":
+            if math.isfinite(msg.yaw):
+                self.yaw_rad = msg.yaw
+        elif mtype == FLOW_MESSAGE[self.profile]:
+            return self.core.on_flow(scalar_flow(msg, self.profile, self.core.cfg.flow_sensor.q_rad_per_count))
+        return None
+
+    def _setpoint(self, msg: Any, mtype: str, now_s: float | None) -> None:
+        if mtype == "MANUAL_CONTROL":
+            vmax = self.core.cfg.companion.max_speed_m_s
+            vx, vy = msg.x / 1000.0 * vmax, msg.y / 1000.0 * vmax
+        else:
+            if msg.target_component not in (0, 191):
+                return
+            vx, vy = float(msg.vx), float(msg.vy)
+            if msg.coordinate_frame == LOCAL_NED:
+                c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+                vx, vy = c * vx + s * vy, -s * vx + c * vy
+            elif msg.coordinate_frame not in BODY_FRAMES:
+                self._ignore("setpoint in an unsupported frame")
+                return
+        if not (math.isfinite(vx) and math.isfinite(vy)):
+            self._ignore("non-finite setpoint")
+            return
+        self.core.set_setpoint(vx, vy)
+        self.last_setpoint_time = now_s

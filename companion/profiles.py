@@ -1,0 +1,155 @@
+"""Sensor profiles: how each autopilot's flow message maps to the paper's scene angle.
+
+CONVENTIONS.md, "Sensor profiles". Everything downstream of this module works in the paper's
+convention: the scene-angle rate over one flow frame, ``Omega_x = dphi_x / T`` and
+``Omega_y = dphi_y / T`` (rad/s), with ``phi_x = integral(-omega_y - V_x / A)`` and
+``phi_y = integral(+omega_x - V_y / A)``.
+
+| profile | message | mapping |
+|---|---|---|
+| paper | OPTICAL_FLOW counts ``flow_x``, ``flow_y`` per frame | dphi_x = flow_x Q, dphi_y = flow_y Q |
+| ardupilot | OPTICAL_FLOW ``flow_rate_x/y`` rad/s; ``time_usec`` holds ms | Omega_x = -flow_rate_y, Omega_y = +flow_rate_x |
+| px4 | OPTICAL_FLOW_RAD ``integrated_x/y`` rad over ``integration_time_us`` | dphi_x = -integrated_y, dphi_y = +integrated_x |
+
+The functions take scalars or numpy arrays alike, so the live loop (one message) and replay
+(whole columns) run the same arithmetic.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.recording import Recording
+
+
+class Profile(enum.StrEnum):
+    PAPER = "paper"
+    ARDUPILOT = "ardupilot"
+    PX4 = "px4"
+
+
+#: the MAVLink message that carries the flow in each profile
+FLOW_MESSAGE = {
+    Profile.PAPER: "OPTICAL_FLOW",
+    Profile.ARDUPILOT: "OPTICAL_FLOW",
+    Profile.PX4: "OPTICAL_FLOW_RAD",
+}
+
+#: gyro messages accepted, in order of preference, and their scale to rad/s
+GYRO_MESSAGES = {"RAW_IMU": 1e-3, "SCALED_IMU": 1e-3, "HIGHRES_IMU": 1.0}
+
+
+@dataclass(frozen=True)
+class FlowColumns:
+    """Flow frames in the paper's convention (scalars or equal-length arrays).
+
+    ``time_s``: the frame's sensor (boot) time, s. ``increment``: True when ``scene_x/y`` are
+    angle increments over the frame (rad) and False when they are rates (rad/s).
+    ``integration_s``: the integration time the message states (px4), else NaN: the frame
+    spacing is used. ``quality``: 0 = invalid. ``counts_x/y``: the raw counts (paper profile;
+    NaN otherwise), for plots and spike checks.
+    """
+
+    time_s: Any
+    scene_x: Any
+    scene_y: Any
+    increment: bool
+    integration_s: Any
+    quality: Any
+    counts_x: Any
+    counts_y: Any
+
+
+def flow_columns(fields: Any, profile: Profile, q_rad_per_count: float) -> FlowColumns:
+    """Map the flow message's fields (a MessageTable, a dict, or a pymavlink message via
+    ``FieldView``) to the paper's convention. Works elementwise on arrays."""
+    f = fields
+    nan = np.nan
+    if profile is Profile.PAPER:
+        cx = np.asarray(f["flow_x"], dtype=float)
+        cy = np.asarray(f["flow_y"], dtype=float)
+        return FlowColumns(
+            time_s=np.asarray(f["time_usec"], dtype=float) * 1e-6,
+            scene_x=cx * q_rad_per_count,
+            scene_y=cy * q_rad_per_count,
+            increment=True,
+            integration_s=np.full_like(cx, nan),
+            quality=np.asarray(f["quality"]),
+            counts_x=cx,
+            counts_y=cy,
+        )
+    if profile is Profile.ARDUPILOT:
+        rx = np.asarray(f["flow_rate_x"], dtype=float)
+        ry = np.asarray(f["flow_rate_y"], dtype=float)
+        return FlowColumns(
+            time_s=np.asarray(f["time_usec"], dtype=float) * 1e-3,  # ArduPilot puts ms here
+            scene_x=-ry,
+            scene_y=+rx,
+            increment=False,
+            integration_s=np.full_like(rx, nan),
+            quality=np.asarray(f["quality"]),
+            counts_x=np.full_like(rx, nan),
+            counts_y=np.full_like(rx, nan),
+        )
+    ix = np.asarray(f["integrated_x"], dtype=float)
+    iy = np.asarray(f["integrated_y"], dtype=float)
+    return FlowColumns(
+        time_s=np.asarray(f["time_usec"], dtype=float) * 1e-6,
+        scene_x=-iy,
+        scene_y=+ix,
+        increment=True,
+        integration_s=np.asarray(f["integration_time_us"], dtype=float) * 1e-6,
+        quality=np.asarray(f["quality"]),
+        counts_x=np.full_like(ix, nan),
+        counts_y=np.full_like(ix, nan),
+    )
+
+
+class FieldView:
+    """Dict-like access to a pymavlink message's fields (``view['flow_x']``)."""
+
+    __slots__ = ("_msg",)
+
+    def __init__(self, msg: Any) -> None:
+        self._msg = msg
+
+    def __getitem__(self, key: str) -> Any:
+        return getattr(self._msg, key)
+
+
+def detect_profile(rec: Recording) -> tuple[str, str]:
+    """Which profile fits a recording, and why (one line).
+
+    An importer's ``profile_hint`` wins. OPTICAL_FLOW_RAD without OPTICAL_FLOW is px4.
+    OPTICAL_FLOW whose ``time_usec`` advances by about a thousandth of the log time (ms, not
+    µs) or whose integer counts are all zero while ``flow_rate_*`` move is ardupilot.
+    Otherwise paper.
+    """
+    if rec.profile_hint:
+        return rec.profile_hint, f"set by the {rec.source_format} importer"
+    has_flow = "OPTICAL_FLOW" in rec
+    if not has_flow and "OPTICAL_FLOW_RAD" in rec:
+        return Profile.PX4.value, "flow arrives as OPTICAL_FLOW_RAD (integrated radians)"
+    if not has_flow:
+        return Profile.PAPER.value, "no flow messages: defaulting to paper"
+    of = rec.tables["OPTICAL_FLOW"]
+    reasons = []
+    if len(of) >= 3:
+        dt_log = float(of.t_s[-1] - of.t_s[0])
+        dt_field = float(of["time_usec"][-1]) - float(of["time_usec"][0])
+        if dt_log > 0.5 and dt_field > 0:
+            ratio = dt_field / dt_log
+            if 300 < ratio < 3000:
+                reasons.append(f"time_usec advances {ratio:.0f} per second (milliseconds)")
+    counts = np.abs(np.asarray(of["flow_x"], float)) + np.abs(np.asarray(of["flow_y"], float))
+    rates = np.abs(np.asarray(of["flow_rate_x"], float)) + np.abs(np.asarray(of["flow_rate_y"], float))
+    rates = rates[np.isfinite(rates)]
+    if len(rates) and np.mean(rates > 0) > 0.5 and np.mean(counts > 0) < 0.5 * np.mean(rates > 0):
+        reasons.append("flow_rate_x/y carry the flow while flow_x/y are mostly zero")
+    if reasons:
+        return Profile.ARDUPILOT.value, "; ".join(reasons)
+    return Profile.PAPER.value, "OPTICAL_FLOW counts in flow_x/y with time_usec in microseconds"

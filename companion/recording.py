@@ -1,0 +1,142 @@
+"""The columnar recording: what every reader and importer produces, and every tool consumes.
+
+A ``Recording`` is one ``MessageTable`` per MAVLink message type. A table holds one numpy
+array per message field (MAVLink field names and MAVLink units, e.g. RAW_IMU ``xgyro`` in
+mrad/s), plus the log time of each message, the sender's system/component ids and the
+message's position in the file (``record``), so the original interleaving of message types can
+be rebuilt by sorting on ``record``.
+
+Readers: ``companion.tlog_reader.read_tlog`` (.tlog), ``companion.importers`` (DataFlash .bin,
+PX4 .ulg, CSV with a column map). ``load_recording`` picks one by file type.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from companion.errors import RecordingError
+
+
+@dataclass
+class MessageTable:
+    """All messages of one type, as columns of equal length ``n``.
+
+    ``t_s``: log time of each message, s (UNIX time for a .tlog; the importer's time base
+    otherwise), float64. ``sysid``, ``compid``: sender ids (uint8). ``record``: index of the
+    message in the file (int64, increasing). ``fields``: field name -> array of shape (n,) or
+    (n, k) for array fields (e.g. ATTITUDE_TARGET ``q``: (n, 4)). Char arrays are ``str``
+    object arrays.
+    """
+
+    name: str
+    t_s: np.ndarray
+    sysid: np.ndarray
+    compid: np.ndarray
+    record: np.ndarray
+    fields: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        try:
+            return self.fields[key]
+        except KeyError:
+            raise RecordingError(f"{self.name} has no field {key!r}") from None
+
+    def select(self, mask: np.ndarray) -> MessageTable:
+        """The rows where ``mask`` (boolean or index array) selects."""
+        return MessageTable(
+            self.name,
+            self.t_s[mask],
+            self.sysid[mask],
+            self.compid[mask],
+            self.record[mask],
+            {k: v[mask] for k, v in self.fields.items()},
+        )
+
+    def from_sender(self, sysid: int | None = None, compid: int | None = None) -> MessageTable:
+        mask = np.ones(len(self), dtype=bool)
+        if sysid is not None:
+            mask &= self.sysid == sysid
+        if compid is not None:
+            mask &= self.compid == compid
+        return self.select(mask)
+
+
+@dataclass
+class Recording:
+    """A whole recording as per-message-type columns, with what was skipped while reading."""
+
+    path: str
+    tables: dict[str, MessageTable]
+    source_format: str  # "tlog", "dataflash", "ulog" or "csv"
+    skipped_bytes: int = 0
+    skipped_packets: int = 0
+    #: one line each: what was skipped, repaired or degraded while reading
+    notes: list[str] = field(default_factory=list)
+    #: the sensor profile an importer produced its tables in (None: decide from the content)
+    profile_hint: str | None = None
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.tables and len(self.tables[name]) > 0
+
+    def __iter__(self) -> Iterator[MessageTable]:
+        return iter(self.tables.values())
+
+    def table(self, name: str) -> MessageTable:
+        """The table of ``name``; a RecordingError that names the message if there is none."""
+        if name not in self:
+            raise RecordingError(f"{Path(self.path).name}: no {name} messages in the recording")
+        return self.tables[name]
+
+    def first_of(self, *names: str) -> MessageTable:
+        """The first of ``names`` present (e.g. a gyro: RAW_IMU, SCALED_IMU, HIGHRES_IMU)."""
+        for name in names:
+            if name in self:
+                return self.tables[name]
+        raise RecordingError(f"{Path(self.path).name}: none of {', '.join(names)} in the recording")
+
+    @property
+    def t0_s(self) -> float:
+        """Log time of the first record: reports give times in seconds from here."""
+        starts = [float(t.t_s[0]) for t in self.tables.values() if len(t)]
+        if not starts:
+            raise RecordingError(f"{Path(self.path).name}: the recording holds no messages")
+        return min(starts)
+
+    @property
+    def n_messages(self) -> int:
+        return sum(len(t) for t in self.tables.values())
+
+
+def load_recording(path: str | Path, *, sensor_config: str | Path | None = None) -> Recording:
+    """Read any supported recording into columns: .tlog, DataFlash .bin, PX4 .ulg, or a CSV
+    described by a sensor column map (``sensor_config``)."""
+    p = Path(path)
+    if not p.exists():
+        raise RecordingError(f"recording not found: {p}")
+    if p.is_dir():
+        raise RecordingError(f"recording path is a directory: {p}")
+    suffix = p.suffix.lower()
+    if sensor_config is not None or suffix == ".csv":
+        if sensor_config is None:
+            raise RecordingError(f"{p.name}: a CSV needs --sensor-config (a column map in configs/sensors/)")
+        from companion.importers.csv_columns import read_csv
+
+        return read_csv(p, sensor_config)
+    if suffix == ".bin":
+        from companion.importers.dataflash import read_dataflash
+
+        return read_dataflash(p)
+    if suffix == ".ulg":
+        from companion.importers.ulog import read_ulog
+
+        return read_ulog(p)
+    from companion.tlog_reader import read_tlog
+
+    return read_tlog(p)

@@ -1,0 +1,137 @@
+"""The mismatch report of CONVENTIONS.md (``diagnose --json``), as typed objects.
+
+Both diagnose modes (closed-loop flights and sensor-only recordings) fill a ``Report`` and
+write it with ``Report.write_json``; the JSON layout is the contract read by outside checks.
+Times are seconds from the first record of the recording.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+@dataclass
+class Window:
+    channel: str
+    start_s: float
+    end_s: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"channel": self.channel, "start_s": _num(self.start_s), "end_s": _num(self.end_s)}
+
+
+@dataclass
+class Fit:
+    heldout_rms_before: float
+    heldout_rms_after: float
+
+    @property
+    def improvement_pct(self) -> float:
+        if self.heldout_rms_before <= 0:
+            return 0.0
+        return 100.0 * (self.heldout_rms_before - self.heldout_rms_after) / self.heldout_rms_before
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "heldout_rms_before": _num(self.heldout_rms_before),
+            "heldout_rms_after": _num(self.heldout_rms_after),
+            "improvement_pct": _num(self.improvement_pct),
+        }
+
+
+@dataclass
+class Finding:
+    """One effect tried. ``significant`` says whether it earned its parameters."""
+
+    effect: str
+    significant: bool
+    parameters: dict[str, float]
+    uncertainty: dict[str, float]
+    explanation: str
+    where: list[Window] = field(default_factory=list)
+    fit: Fit | None = None
+    #: extra evidence for the human report (information criteria, notes); also written to JSON
+    evidence: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "effect": self.effect,
+            "significant": bool(self.significant),
+            "parameters": {k: _num(v) for k, v in self.parameters.items()},
+            "uncertainty": {k: _num(v) for k, v in self.uncertainty.items()},
+            "explanation": self.explanation,
+            "where": [w.to_json() for w in self.where],
+            "fit": self.fit.to_json() if self.fit else
+            {"heldout_rms_before": None, "heldout_rms_after": None, "improvement_pct": None},
+        }
+        if self.evidence:
+            out["evidence"] = _clean(self.evidence)
+        return out
+
+
+@dataclass
+class Unexplained:
+    channel: str
+    start_s: float
+    end_s: float
+    rms: float
+    #: best-fitting candidate term from sparse regression, in words (optional)
+    best_term: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"channel": self.channel, "start_s": _num(self.start_s),
+                               "end_s": _num(self.end_s), "rms": _num(self.rms)}
+        if self.best_term is not None:
+            out["best_term"] = self.best_term
+        return out
+
+
+@dataclass
+class Report:
+    recording: str
+    baseline_rms: dict[str, float] = field(default_factory=dict)
+    findings: list[Finding] = field(default_factory=list)
+    unexplained: list[Unexplained] = field(default_factory=list)
+    #: what was skipped or could not be judged, one line each
+    notes: list[str] = field(default_factory=list)
+    mode: str = "flight"  # "flight" (closed loop) or "sensor" (sensor-only)
+
+    def significant(self) -> list[Finding]:
+        return [f for f in self.findings if f.significant]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "recording": self.recording,
+            "mode": self.mode,
+            "baseline": {"channels": {k: {"rms": _num(v)} for k, v in self.baseline_rms.items()}},
+            "findings": [f.to_json() for f in self.findings],
+            "unexplained": [u.to_json() for u in self.unexplained],
+            "notes": list(self.notes),
+        }
+
+    def write_json(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_json(), indent=2, allow_nan=False) + "\n")
+
+
+def _num(x: Any) -> float | None:
+    """JSON has no NaN: a value that could not be computed is written as null."""
+    if x is None:
+        return None
+    xf = float(x)
+    return xf if math.isfinite(xf) else None
+
+
+def _clean(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, bool) or obj is None or isinstance(obj, str):
+        return obj
+    if isinstance(obj, (int, float)) or hasattr(obj, "__float__"):
+        return _num(obj)
+    return str(obj)

@@ -1,0 +1,5 @@
+import sys
+
+from simvehicle.cli import main
+
+sys.exit(main())

@@ -1,0 +1,111 @@
+"""Command line of the simulated vehicle: ``python -m simvehicle {scenario,serve,sweep}``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Sequence
+
+from companion.errors import ExitCode, FlowholdError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m simvehicle",
+                                     description="The paper's simulated vehicle: scenarios, a MAVLink/UDP "
+                                                 "vehicle, parameter sweeps.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{scenario,serve,sweep}")
+    sc = sub.add_parser("scenario", help="run one of the paper's scenarios in simulation time")
+    sc.add_argument("name", choices=["step", "gust", "slow", "rail", "triangle"])
+    sc.add_argument("--config", help="parameter set (TOML); default configs/paper.toml")
+    sc.add_argument("--profile", choices=["paper", "ardupilot", "px4"], default="paper",
+                    help="sensor message convention of the recording (closed-loop scenarios)")
+    sc.add_argument("--seed", type=int, default=0, help="seed of the noise generator")
+    sc.add_argument("--tlog", help="write the run as a MAVLink recording")
+    sc.add_argument("--plot", help="write the paper's figure for the run (PNG)")
+    sc.add_argument("--json", help="write the measured figures of merit (JSON); '-' for stdout")
+
+    sv = sub.add_parser("serve", help="a simulated vehicle speaking MAVLink on one UDP port")
+    sv.add_argument("--listen", default="127.0.0.1:14550", help="HOST:PORT to bind (default 127.0.0.1:14550)")
+    sv.add_argument("--config", help="parameter set (TOML)")
+    sv.add_argument("--profile", choices=["paper", "ardupilot", "px4"], default="paper")
+    mode = sv.add_mutually_exclusive_group()
+    mode.add_argument("--speedup", type=float, default=1.0, help="run X times faster than real time")
+    mode.add_argument("--lockstep", action="store_true",
+                      help="advance one frame per companion setpoint (deterministic, as fast as the CPU)")
+    sv.add_argument("--tlog", help="record everything sent and received")
+    sv.add_argument("--seed", type=int, default=0)
+    sv.add_argument("--signing-key", help="MAVLink 2 signing: a passphrase or a file holding the key")
+    sv.add_argument("--sysid", type=int, default=1, help="the vehicle's MAVLink system id")
+    sv.add_argument("--duration", type=float, help="stop after this many simulated seconds")
+
+    sw = sub.add_parser("sweep", help="figures of merit across a parameter grid (all cores)")
+    sw.add_argument("sweep_config", help="sweep definition (TOML), e.g. configs/sweeps/altitude_q.toml")
+    sw.add_argument("--out", default="out/sweep", help="folder for the table (CSV) and the plot")
+    sw.add_argument("--workers", type=int, help="processes (default: all cores)")
+    return parser
+
+
+def _scenario(args: argparse.Namespace) -> int:
+    from companion.config import load_config
+    from companion.profiles import Profile
+    from simvehicle.scenarios import figures, run_named
+
+    cfg = load_config(args.config)
+    run = run_named(args.name, cfg, profile=Profile(args.profile), seed=args.seed, tlog=args.tlog)
+    fig = figures(run, cfg)
+    text = json.dumps(fig, indent=2)
+    if args.json == "-":
+        print(text)
+    elif args.json:
+        with open(args.json, "w") as fh:
+            fh.write(text + "\n")
+    if args.plot:
+        from simvehicle.plots import plot_run
+
+        plot_run(run, args.plot)
+    if args.json != "-":
+        print(_summary(fig))
+        for label, p in (("recording", args.tlog), ("plot", args.plot), ("figures", args.json)):
+            if p:
+                print(f"{label}: {p}")
+    return 0
+
+
+def _summary(fig: dict) -> str:
+    lines = [f"scenario {fig['scenario']}"]
+    if "rows" in fig:
+        for r in fig["rows"]:
+            lines.append("  " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                          for k, v in r.items()))
+        return "\n".join(lines)
+    for axis in ("x", "y"):
+        lines.append(f"  {axis}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                               for k, v in fig[axis].items()))
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "scenario":
+            return _scenario(args)
+        if args.command == "serve":
+            from simvehicle.server import run_cli
+
+            return int(run_cli(args))
+        from simvehicle.sweep import run_cli as sweep_cli
+
+        return int(sweep_cli(args))
+    except FlowholdError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return int(exc.exit_code)
+    except KeyboardInterrupt:
+        print("stopped", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - one line, no traceback
+        if os.environ.get("FLOWHOLD_DEBUG"):
+            raise
+        print(f"error: {type(exc).__name__}: {exc} (set FLOWHOLD_DEBUG=1 for details)", file=sys.stderr)
+        return int(ExitCode.FAILURE)
