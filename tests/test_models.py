@@ -96,3 +96,17 @@ def test_simulator_flow_scale_and_misalignment_change_counts(paper_cfg):
     assert scaled[0] == pytest.approx(nominal[0] / 1.25, abs=1.0)
     turned = drift_counts(with_effects(paper_cfg, flow_yaw_misalignment=FlowYawMisalignment(math.radians(10))))
     assert turned[1] == pytest.approx(-math.sin(math.radians(10)) * nominal[0], abs=1.0)
+
+
+def test_hand_written_rk4_equals_textbook_rk4(paper_cfg):
+    from simvehicle.plant import axis_rk4_reference
+
+    rng = np.random.default_rng(5)
+    p = PlantParams(2.3, 9.81, 5.4, 0.71, 0.2)
+    for _ in range(200):
+        x = tuple(rng.normal(0, 0.3, 5))
+        args = (float(rng.normal(0, 0.2)), float(rng.normal(0, 2)), float(rng.uniform(0.3, 3)),
+                float(rng.choice([-1.0, 1.0])), 1e-3)
+        a = axis_rk4(x, *args, p=p)
+        b = axis_rk4_reference(x, *args, p=p)
+        assert np.allclose(a, b, rtol=1e-13, atol=1e-15)
