@@ -36,7 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="run the velocity-hold loop against a vehicle over MAVLink")
     run.add_argument("--connect", required=True,
-                     help="pymavlink URL: udpout:127.0.0.1:14550, udpin:0.0.0.0:14550, tcp:HOST:PORT, /dev/ttyUSB0,921600")
+                     help="pymavlink URL: udpout:127.0.0.1:14550, udpin:0.0.0.0:14550, tcp:HOST:PORT, "
+                          "/dev/ttyUSB0,921600")
     _add_common(run)
     run.add_argument("--arm", action="store_true", help="switch to GUIDED_NOGPS and arm (simulators only)")
     run.add_argument("--setpoint", help="constant body-frame velocity setpoint VX,VY in m/s")

@@ -5,11 +5,11 @@ convention: the scene-angle rate over one flow frame, ``Omega_x = dphi_x / T`` a
 ``Omega_y = dphi_y / T`` (rad/s), with ``phi_x = integral(-omega_y - V_x / A)`` and
 ``phi_y = integral(+omega_x - V_y / A)``.
 
-| profile | message | mapping |
-|---|---|---|
-| paper | OPTICAL_FLOW counts ``flow_x``, ``flow_y`` per frame | dphi_x = flow_x Q, dphi_y = flow_y Q |
-| ardupilot | OPTICAL_FLOW ``flow_rate_x/y`` rad/s; ``time_usec`` holds ms | Omega_x = -flow_rate_y, Omega_y = +flow_rate_x |
-| px4 | OPTICAL_FLOW_RAD ``integrated_x/y`` rad over ``integration_time_us`` | dphi_x = -integrated_y, dphi_y = +integrated_x |
+- paper: OPTICAL_FLOW counts ``flow_x``, ``flow_y`` per frame: dphi_x = flow_x Q, dphi_y = flow_y Q
+- ardupilot: OPTICAL_FLOW ``flow_rate_x/y`` rad/s, ``time_usec`` holds ms:
+  Omega_x = -flow_rate_y, Omega_y = +flow_rate_x
+- px4: OPTICAL_FLOW_RAD ``integrated_x/y`` rad over ``integration_time_us``:
+  dphi_x = -integrated_y, dphi_y = +integrated_x
 
 The functions take scalars or numpy arrays alike, so the live loop (one message) and replay
 (whole columns) run the same arithmetic.
