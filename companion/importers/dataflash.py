@@ -31,7 +31,9 @@ from __future__ import annotations
 
 import contextlib
 import io
-from collections.abc import Mapping
+import os
+import sys
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -95,17 +97,34 @@ def read_dataflash(path: str | Path) -> Recording:
     if bytes(data[:3]) != _HEAD + bytes([_FMT_ID]):
         raise RecordingError(
             f"{p.name}: not an ArduPilot DataFlash log (no 0xA3 0x95 FMT header at the start)")
-    messages, skipped = _index(p, data)
-    notes: list[str] = []
-    if skipped:
-        notes.append(f"DataFlash: {skipped} bytes outside complete messages skipped "
-                     "(corrupt or truncated log)")
+    try:
+        with np.errstate(invalid="ignore", over="ignore"):  # damaged floats (NaN, sNaN, inf) pass through
+            return _read(p, data)
+    except RecordingError as exc:
+        if str(exc).startswith(p.name):
+            raise
+        raise RecordingError(f"{p.name}: {exc}") from None
+
+
+def _read(p: Path, data: np.ndarray) -> Recording:
+    """``read_dataflash`` after the file checks."""
+    messages, skipped, notes = _index(p, data)
 
     def take(name: str) -> tuple[Columns, np.ndarray] | None:
+        """The decoded messages ``name``, or None (with a note) when their layout lacks a field
+        this importer needs."""
         got = messages.get(name)
         if got is None or len(got[1]) == 0:
             return None
-        return got
+        layouts = _REQUIRED.get(name, ((),))
+        if any(all(f in got[0] for f in layout) for layout in layouts):
+            return got
+        missing = [f for f in layouts[0] if f not in got[0]]
+        problem = f"{name} messages lack {', '.join(missing)} (unsupported log layout)"
+        if name == "OF":
+            raise RecordingError(f"{p.name}: {problem}")
+        notes.append(f"{problem}: skipped")
+        return None
 
     of = take("OF")
     if of is None:
@@ -117,7 +136,7 @@ def read_dataflash(path: str | Path) -> Recording:
         tables[table.name] = table
         order_keys[table.name] = key
 
-    add(*_optical_flow(p.name, *of))
+    add(*_optical_flow(*of))
 
     gyro = _raw_imu(take("IMU"), take("GYR"), notes)
     if gyro is not None:
@@ -156,19 +175,35 @@ def read_dataflash(path: str | Path) -> Recording:
 # --------------------------------------------------------------------------- file decoding
 
 
-def _index(p: Path, data: np.ndarray) -> tuple[dict[str, tuple[Columns, np.ndarray]], int]:
+def _index(p: Path, data: np.ndarray) -> tuple[dict[str, tuple[Columns, np.ndarray]], int, list[str]]:
     """Index the file with pymavlink's DFReader and decode the messages this importer uses.
 
-    Returns ``{name: (columns, file_offsets)}`` and the number of bytes that lie outside
-    complete messages (corruption, truncation).
+    Returns ``{name: (columns, file_offsets)}``, the number of bytes that lie outside complete
+    messages (corruption, truncation) and notes on message types that could not be decoded.
     """
     from pymavlink import DFReader
 
+    class IndexOnly(DFReader.DFReader_binary):  # type: ignore[misc]
+        """DFReader's indexer without its clock set-up: ``init_clock`` parses every message of
+        a log without GPS (~50 us each) and this importer reads TimeUS directly."""
+
+        def __init__(self, filename: str) -> None:
+            try:
+                super().__init__(filename, zero_time_base=True)
+            except BaseException:  # DFReader leaves its file and mmap open when it raises
+                for handle in ("data_map", "filehandle"):
+                    with contextlib.suppress(Exception):
+                        getattr(self, handle).close()
+                raise
+
+        def init_clock(self) -> None:
+            self._rewind(keep_messages=True)
+            self.clock = DFReader.DFReaderClock_usec()
+
     wanted = ("OF", "IMU", "GYR", "RFND", "ATT", "RATE", "PARM")
-    sink = io.StringIO()
     try:
-        with contextlib.redirect_stderr(sink), contextlib.redirect_stdout(sink):
-            reader = DFReader.DFReader_binary(str(p), zero_time_base=True)
+        with _quiet():
+            reader = IndexOnly(str(p))
     except Exception as exc:  # DFReader raises bare Exceptions on malformed FMT records
         raise RecordingError(f"{p.name}: DataFlash log could not be indexed ({exc})") from None
     try:
@@ -179,13 +214,46 @@ def _index(p: Path, data: np.ndarray) -> tuple[dict[str, tuple[Columns, np.ndarr
             reader.close()
     used = 0
     out: dict[str, tuple[Columns, np.ndarray]] = {}
+    notes: list[str] = []
     for type_id, fmt in formats.items():
         ofs = offsets[type_id] if type_id < len(offsets) else np.zeros(0, np.int64)
         ofs = ofs[ofs + fmt.len <= data.size]
         used += len(ofs) * fmt.len
         if fmt.name in wanted and len(ofs):
-            out[fmt.name] = (decode_messages(data, ofs, fmt.format, list(fmt.columns), fmt.len), ofs)
-    return out, max(0, int(data.size) - used)
+            try:
+                out[fmt.name] = (decode_messages(data, ofs, fmt.format, list(fmt.columns), fmt.len), ofs)
+            except RecordingError as exc:
+                if fmt.name == "OF":
+                    raise RecordingError(f"{p.name}: OF: {exc}") from None
+                notes.append(f"{fmt.name}: {exc}: skipped")
+    skipped = max(0, int(data.size) - used)
+    if skipped:
+        notes.insert(0, f"DataFlash: {skipped} bytes outside complete messages skipped "
+                        "(corrupt or truncated log)")
+    return out, skipped, notes
+
+
+@contextlib.contextmanager
+def _quiet() -> Iterator[None]:
+    """Silence stdout and stderr, at the file-descriptor level too: pymavlink's C indexer
+    prints a line per skipped byte of a damaged log (the count is in ``skipped_bytes``)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved: list[tuple[int, int]] = []
+    try:
+        with open(os.devnull, "wb") as null:
+            for fd in (1, 2):
+                try:
+                    saved.append((fd, os.dup(fd)))
+                    os.dup2(null.fileno(), fd)
+                except OSError:  # no such descriptor (embedded interpreter): nothing to silence
+                    continue
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                yield
+    finally:
+        for fd, copy in saved:
+            os.dup2(copy, fd)
+            os.close(copy)
 
 
 def decode_messages(data: np.ndarray, offsets: np.ndarray, fmt: str, columns: list[str],
@@ -222,18 +290,23 @@ def _unique(col: str, i: int, columns: list[str]) -> str:
     return col if columns.index(col) == i else f"{col}__{i}"
 
 
-def _need(cols: Columns, name: str, fields: tuple[str, ...], what: str) -> None:
-    missing = [f for f in fields if f not in cols]
-    if missing:
-        raise RecordingError(f"{what}: {name} messages lack {', '.join(missing)} (unsupported log layout)")
+#: fields each message must carry (any one of the layouts) for this importer to use it
+_REQUIRED: dict[str, tuple[tuple[str, ...], ...]] = {
+    "OF": (("TimeUS", "Qual", "flowX", "flowY", "bodyX", "bodyY"),),
+    "IMU": (("TimeUS", "GyrX", "GyrY", "GyrZ"),),
+    "GYR": (("TimeUS", "GyrX", "GyrY", "GyrZ"),),
+    "RFND": (("TimeUS", "Dist", "Orient"), ("TimeUS", "Dist1", "Orient1")),
+    "ATT": (("TimeUS", "DesRoll", "Roll", "DesPitch", "Pitch", "DesYaw", "Yaw"),),
+    "RATE": (("TimeUS", "RDes", "R", "PDes", "P", "YDes", "Y"),),
+    "PARM": (("Name", "Value"),),
+}
 
 
 # --------------------------------------------------------------------------- message mapping
 
 
-def _optical_flow(fname: str, c: Columns, ofs: np.ndarray) -> tuple[MessageTable, np.ndarray]:
+def _optical_flow(c: Columns, ofs: np.ndarray) -> tuple[MessageTable, np.ndarray]:
     """OF -> OPTICAL_FLOW in the ardupilot profile's MAVLink semantics."""
-    _need(c, "OF", ("TimeUS", "Qual", "flowX", "flowY", "bodyX", "bodyY"), fname)
     t_us = c["TimeUS"].astype(np.int64)
     fx = c["flowX"].astype(np.float64)
     fy = c["flowY"].astype(np.float64)
@@ -273,7 +346,6 @@ def _raw_imu(imu: tuple[Columns, np.ndarray] | None, gyr: tuple[Columns, np.ndar
     """IMU (preferred) or GYR -> RAW_IMU: gyro mrad/s, accel milli-g, time_usec us."""
     if imu is not None:
         c, ofs = _first_instance(*imu, "IMU", notes)
-        _need(c, "IMU", ("TimeUS", "GyrX", "GyrY", "GyrZ"), "DataFlash")
         t_us = c["TimeUS"].astype(np.int64)
         fields: Columns = {"time_usec": t_us}
         for ax in "XYZ":
@@ -288,7 +360,6 @@ def _raw_imu(imu: tuple[Columns, np.ndarray] | None, gyr: tuple[Columns, np.ndar
         return build_table("RAW_IMU", t_us * 1e-6, fields), ofs
     if gyr is not None:
         c, ofs = _first_instance(*gyr, "GYR", notes)
-        _need(c, "GYR", ("TimeUS", "GyrX", "GyrY", "GyrZ"), "DataFlash")
         t_us = c["TimeUS"].astype(np.int64)
         sample_us = c["SampleUS"].astype(np.int64) if "SampleUS" in c else t_us
         n = len(t_us)
@@ -306,7 +377,7 @@ def _raw_imu(imu: tuple[Columns, np.ndarray] | None, gyr: tuple[Columns, np.ndar
 
 def _params(parm: tuple[Columns, np.ndarray] | None) -> dict[str, float]:
     """PARM rows -> {name: last logged value}."""
-    if parm is None or "Name" not in parm[0] or "Value" not in parm[0]:
+    if parm is None:
         return {}
     return {str(n): float(v) for n, v in zip(parm[0]["Name"], parm[0]["Value"], strict=True)}
 
@@ -329,15 +400,13 @@ def _distance_sensor(c: Columns, ofs: np.ndarray, params: Mapping[str, float],
     """RFND -> DISTANCE_SENSOR (cm). Handles the current layout (Instance, Dist, Stat, Orient)
     and the pre-4.0 two-sensor layout (Dist1, Orient1, Dist2, Orient2)."""
     if "Dist" in c:
-        _need(c, "RFND", ("TimeUS", "Dist", "Orient"), "DataFlash")
         t_us = c["TimeUS"].astype(np.int64)
         inst = c["Instance"].astype(np.int64) if "Instance" in c else np.zeros(len(t_us), np.int64)
         dist_m = c["Dist"].astype(np.float64)
         orient = c["Orient"].astype(np.int64)
         status = c["Stat"].astype(np.int64) if "Stat" in c else None
         quality = c["Quality"].astype(np.int64) if "Quality" in c else None
-    elif "Dist1" in c:
-        _need(c, "RFND", ("TimeUS", "Dist1", "Orient1"), "DataFlash")
+    else:  # pre-4.0 layout
         t1 = c["TimeUS"].astype(np.int64)
         parts = [(t1, np.zeros_like(t1), c["Dist1"], c["Orient1"], ofs)]
         if "Dist2" in c and np.any(c["Dist2"] > 0):
@@ -346,8 +415,6 @@ def _distance_sensor(c: Columns, ofs: np.ndarray, params: Mapping[str, float],
         dist_m = dist_m.astype(np.float64)
         orient = orient.astype(np.int64)
         status = quality = None
-    else:
-        raise RecordingError("DataFlash: RFND messages lack Dist (unsupported log layout)")
     n = len(t_us)
     min_cm = np.zeros(n)
     max_cm = np.zeros(n)
@@ -355,7 +422,8 @@ def _distance_sensor(c: Columns, ofs: np.ndarray, params: Mapping[str, float],
         sel = inst == i
         limits = _range_limits_cm(params, int(i))
         if limits is None:
-            limits = (0.0, float(np.ceil(np.nanmax(dist_m[sel]) * 100.0)))
+            finite = dist_m[sel][np.isfinite(dist_m[sel])]
+            limits = (0.0, float(np.ceil(finite.max() * 100.0)) if len(finite) else 0.0)
             notes.append(f"RFND instance {int(i)}: no RNGFND{int(i) + 1}_MIN/_MAX parameters, "
                          f"range limits taken from the data (0-{limits[1]:.0f} cm)")
         min_cm[sel], max_cm[sel] = limits
@@ -382,7 +450,6 @@ def _distance_sensor(c: Columns, ofs: np.ndarray, params: Mapping[str, float],
 def _attitude(c: Columns, ofs: np.ndarray, rate: tuple[Columns, np.ndarray] | None,
               notes: list[str]) -> list[tuple[MessageTable, np.ndarray]]:
     """ATT (+ the nearest RATE row) -> ATTITUDE and ATTITUDE_TARGET."""
-    _need(c, "ATT", ("TimeUS", "DesRoll", "Roll", "DesPitch", "Pitch", "DesYaw", "Yaw"), "DataFlash")
     t_us = c["TimeUS"].astype(np.int64)
     t_s = t_us * 1e-6
     n = len(t_us)
@@ -390,7 +457,6 @@ def _attitude(c: Columns, ofs: np.ndarray, rate: tuple[Columns, np.ndarray] | No
     rates = {k: np.full(n, np.nan) for k in ("R", "P", "Y", "RDes", "PDes", "YDes")}
     if rate is not None:
         rc = rate[0]
-        _need(rc, "RATE", ("TimeUS", "RDes", "R", "PDes", "P", "YDes", "Y"), "DataFlash")
         rt = rc["TimeUS"].astype(np.int64) * 1e-6
         idx = nearest_index(rt, t_s, _median_spacing(t_s, cap_s=0.02) / 2.0)
         hit = idx >= 0

@@ -127,7 +127,10 @@ class ULogWriter:
 
     def data(self, name: str, multi_id: int = 0, **values: float | int | list[float]) -> None:
         codes, packed = "<", []
-        for base, count, fname in self._formats[name]:
+        fields = list(self._formats[name])
+        while fields and fields[-1][2].startswith("_padding"):
+            fields.pop()  # PX4's logger writes o_size_no_padding: no trailing padding
+        for base, count, fname in fields:
             code = _ULOG_TYPES[base]
             v = values.get(fname, 0)
             items = list(v) if isinstance(v, list | tuple) else [v] * max(count, 1)
