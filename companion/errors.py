@@ -40,3 +40,9 @@ class LinkError(FlowholdError):
     """A MAVLink connection could not be opened or the vehicle was never heard."""
 
     exit_code = ExitCode.LINK
+
+
+class UsageError(FlowholdError):
+    """A command-line value is malformed (e.g. ``--setpoint abc``, ``--listen nohost``)."""
+
+    exit_code = ExitCode.USAGE

@@ -39,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--signing-key", help="MAVLink 2 signing: a passphrase or a file holding the key")
     sv.add_argument("--sysid", type=int, default=1, help="the vehicle's MAVLink system id")
     sv.add_argument("--duration", type=float, help="stop after this many simulated seconds")
+    sv.add_argument("--scenario", choices=["step", "gust", "slow"],
+                    help="fly a paper scenario's schedule: its external force, and its velocity setpoints "
+                         "sent to the companion as a ground station would; --duration defaults to its length")
 
     sw = sub.add_parser("sweep", help="figures of merit across a parameter grid (all cores)")
     sw.add_argument("sweep_config", help="sweep definition (TOML), e.g. configs/sweeps/altitude_q.toml")

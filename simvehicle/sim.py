@@ -86,15 +86,29 @@ class Simulator:
     def __init__(self, cfg: Config, *, rng: np.random.Generator | None = None,
                  external_force: ForceFn = _no_force, altitude: AltitudeFn | None = None,
                  turbulence: Turbulence | None = None) -> None:
-        self.cfg = cfg
         self.rng = rng if rng is not None else np.random.default_rng(0)
-        self.params = PlantParams.truth(cfg)
         self.T = cfg.flow_sensor.frame_period_s
         self.n_sub = cfg.sim.substeps_per_frame
         self.external_force = external_force
         self.altitude_fn: AltitudeFn = altitude if altitude is not None else (lambda _t: cfg.world.altitude_m)
         self.turbulence = turbulence
         self.turb_force = (0.0, 0.0)
+        self._derive(cfg)
+        self.frame = 0
+        self.t_s = 0.0
+        self.x: AxisState = ZERO_AXIS
+        self.y: AxisState = ZERO_AXIS
+        self.u_active = (0.0, 0.0)  # (roll, pitch) rad
+        self.counts = (0, 0)
+        # scene-angle history over the last frames for the flow_delay effect: (t, phi_x, phi_y, dphi_x, dphi_y)
+        self._hist: list[tuple[float, float, float, float, float]] = []
+        self._record_hist()
+        self.current = self._sample()
+
+    def _derive(self, cfg: Config) -> None:
+        """Bind the parameters that follow from ``cfg`` (plant truth, sensor effects)."""
+        self.cfg = cfg
+        self.params = PlantParams.truth(cfg)
         e = cfg.effects
         q = cfg.flow_sensor.q_rad_per_count
         self.q_x = q * (e.flow_scale.scale_x if e.flow_scale else 1.0)
@@ -106,18 +120,29 @@ class Simulator:
         self.gyro_density = (math.radians(cfg.imu.gyro_noise_density_deg_s_sqrt_hz)
                              if cfg.imu.gyro_noise else 0.0)
         self.gyro_range = math.radians(cfg.imu.gyro_range_deg_s)
-        self.frame = 0
-        self.t_s = 0.0
-        self.x: AxisState = ZERO_AXIS
-        self.y: AxisState = ZERO_AXIS
-        self.u_active = (0.0, 0.0)  # (roll, pitch) rad
-        self.counts = (0, 0)
-        # scene-angle history over the last frames for the flow_delay effect: (t, phi_x, phi_y, dphi_x, dphi_y)
-        n_hist = self.n_sub * (2 + int(self.delay_s / self.T + 1))
-        self._hist: list[tuple[float, float, float, float, float]] = []
-        self._hist_len = n_hist
-        self._record_hist()
-        self.current = self._sample()
+        self._hist_len = self.n_sub * (2 + int(self.delay_s / self.T + 1))
+
+    def set_config(self, cfg: Config) -> None:
+        """Take a new parameter set in flight (a GCS changing an effect), keeping the state.
+
+        The change acts from the next ``advance``. The flow sensor's accumulated counts are
+        re-quantized with the new Q and axes, so the change itself makes no jump in dX, dY.
+        A ``flow_delay`` switched on reads the scene angle at the switch until ``delay`` of
+        history has built up (the sensor output pauses for ``delay``, then lags). The frame
+        rate and integration step cannot change in flight.
+        """
+        if (cfg.flow_sensor.frame_period_s != self.T or cfg.sim.substeps_per_frame != self.n_sub):
+            raise ValueError("the frame rate and substeps cannot change in flight")
+        had_delay = self.delay_s > 0.0
+        self._derive(cfg)
+        if self.delay_s > 0.0 and not had_delay:
+            self._hist = []
+            self._record_hist()
+        phi_x, phi_y = self.x[4], self.y[4]
+        if self.delay_s > 0.0:
+            phi_x, phi_y = self._phi_at(self.t_s - self.delay_s)
+        self.counts, _ = flow_frame(phi_x, phi_y, (0, 0), q_x_rad_per_count=self.q_x,
+                                    q_y_rad_per_count=self.q_y, yaw_rad=self.yaw_mis)
 
     # -- forces --------------------------------------------------------------------------
 

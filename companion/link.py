@@ -1,0 +1,155 @@
+"""MAVLink link plumbing shared by the companion and the simulated vehicle.
+
+Opening a connection from a pymavlink URL (with one clear error when it cannot be opened),
+MAVLink 2 signing keys, ArduCopter's mode numbers, and small command helpers. No control
+logic lives here; times are passed in.
+
+URLs (what ``python -m companion run --connect`` takes, as pymavlink does):
+``udpout:HOST:PORT`` (we send first; the usual way to reach the simulated vehicle),
+``udpin:HOST:PORT`` (we listen), ``udp:HOST:PORT`` (listen), ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``,
+and a serial device with its baud rate: ``/dev/ttyUSB0,921600`` (``COM3,57600`` on Windows).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import time
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("MAVLINK20", "1")  # before pymavlink.mavutil picks its dialect: MAVLink 2
+
+from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v20 import ardupilotmega as mav  # noqa: E402
+
+from companion.errors import LinkError, UsageError  # noqa: E402
+
+#: ArduCopter's flight modes by custom_mode number (the ones a GCS names)
+COPTER_MODES = {0: "STABILIZE", 1: "ACRO", 2: "ALT_HOLD", 3: "AUTO", 4: "GUIDED", 5: "LOITER", 6: "RTL",
+                7: "CIRCLE", 9: "LAND", 11: "DRIFT", 13: "SPORT", 14: "FLIP", 15: "AUTOTUNE", 16: "POSHOLD",
+                17: "BRAKE", 18: "THROW", 19: "AVOID_ADSB", 20: "GUIDED_NOGPS", 21: "SMART_RTL"}
+GUIDED_NOGPS = 20
+ARM_MAGIC_FORCE = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that skips pre-arm checks
+#: 10 µs ticks from 2015-01-01 to now: the MAVLink 2 signing timestamp
+SIGNING_EPOCH_S = 1_420_070_400
+
+_SERIAL_RE = re.compile(r"^(?P<dev>(/dev/[^,]+|COM\d+))(,(?P<baud>\d+))?$")
+_NET_PREFIXES = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")
+
+
+def mode_name(custom_mode: int) -> str:
+    """ArduCopter's name for a custom_mode number (``MODE<n>`` if unknown)."""
+    return COPTER_MODES.get(int(custom_mode), f"MODE{int(custom_mode)}")
+
+
+def parse_host_port(text: str, *, what: str = "address") -> tuple[str, int]:
+    """``HOST:PORT`` -> (host, port); port 0 means "any free port". UsageError if malformed."""
+    host, sep, port = str(text).rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise UsageError(f"{what}: expected HOST:PORT (e.g. 127.0.0.1:14550), got {text!r}")
+    return host, int(port)
+
+
+def check_url(url: str) -> None:
+    """Reject what pymavlink would misread (a typo would otherwise be opened as a log file)."""
+    if url.startswith(_NET_PREFIXES):
+        rest = url.split(":", 1)[1]
+        parse_host_port(rest, what=f"--connect {url}")
+        return
+    if _SERIAL_RE.match(url):
+        return
+    raise UsageError(f"--connect: not a MAVLink URL: {url!r} (use udpout:HOST:PORT, udpin:HOST:PORT, "
+                     "tcp:HOST:PORT or a serial device such as /dev/ttyUSB0,921600)")
+
+
+def open_connection(url: str, *, source_system: int, source_component: int) -> Any:
+    """Open a pymavlink connection (MAVLink 2, ardupilotmega dialect). LinkError if it fails."""
+    check_url(url)
+    kwargs: dict[str, Any] = {"source_system": source_system, "source_component": source_component,
+                              "dialect": "ardupilotmega", "autoreconnect": False}
+    device = url
+    m = _SERIAL_RE.match(url)
+    if m:
+        device = m.group("dev")
+        kwargs["baud"] = int(m.group("baud") or 115200)
+    try:
+        conn = mavutil.mavlink_connection(device, **kwargs)
+    except Exception as exc:  # noqa: BLE001 - socket, serial and resolver errors alike: one line
+        raise LinkError(f"cannot open {url}: {exc}") from None
+    conn.mav.robust_parsing = True
+    return conn
+
+
+def signing_key(text: str) -> bytes:
+    """The 32-byte MAVLink 2 signing key from ``--signing-key``.
+
+    A path to a file: its content (32 raw bytes, 64 hex digits, or a passphrase in the file);
+    anything else is a passphrase. A passphrase becomes ``sha256(passphrase)``, as MAVProxy's
+    ``signing setup`` does, so the same passphrase works in MAVProxy, the companion and the vehicle.
+    """
+    p = Path(text)
+    if p.is_file():
+        data = p.read_bytes()
+        if len(data) == 32:
+            return data
+        stripped = data.strip()
+        if re.fullmatch(rb"[0-9a-fA-F]{64}", stripped):
+            return bytes.fromhex(stripped.decode())
+        text = stripped.decode(errors="replace")
+    if not text:
+        raise UsageError("--signing-key: empty passphrase")
+    return hashlib.sha256(text.encode()).digest()
+
+
+def signing_timestamp(unix_s: float) -> int:
+    """MAVLink 2 signing timestamp (10 µs units since 2015-01-01) of a UNIX time."""
+    return int(max(unix_s - SIGNING_EPOCH_S, 0.0) * 100_000)
+
+
+def setup_signing(mavobj: Any, key: bytes, *, unix_s: float | None = None, link_id: int = 0,
+                  sign_outgoing: bool = True) -> None:
+    """Sign outgoing packets with ``key`` and reject unsigned or badly signed incoming ones.
+
+    ``mavobj``: a pymavlink ``MAVLink`` object (``conn.mav``, or the vehicle's encoder and
+    per-peer parsers). ``unix_s``: the wall time that starts the signing clock (now if None).
+    """
+    s = mavobj.signing
+    s.secret_key = key
+    s.sign_outgoing = sign_outgoing
+    s.allow_unsigned_callback = None
+    s.link_id = link_id
+    s.timestamp = signing_timestamp(time.time() if unix_s is None else unix_s)
+
+
+def is_vehicle_heartbeat(msg: Any) -> bool:
+    """A HEARTBEAT from an autopilot (not a GCS, companion, gimbal or ADS-B receiver)."""
+    if msg.get_type() != "HEARTBEAT":
+        return False
+    if msg.type in (mav.MAV_TYPE_GCS, mav.MAV_TYPE_GIMBAL, mav.MAV_TYPE_ADSB, mav.MAV_TYPE_ONBOARD_CONTROLLER):
+        return False
+    return msg.autopilot != mav.MAV_AUTOPILOT_INVALID
+
+
+def heartbeat_armed(msg: Any) -> bool:
+    return bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+def command_long(enc: Any, target_system: int, target_component: int, command: int, *params: float) -> Any:
+    """A COMMAND_LONG with up to seven parameters (the rest 0)."""
+    p = [float(v) for v in params] + [0.0] * (7 - len(params))
+    return enc.command_long_encode(target_system, target_component, command, 0, *p[:7])
+
+
+def set_message_interval(enc: Any, target_system: int, message_id: int, interval_s: float,
+                         target_component: int = 1) -> Any:
+    """MAV_CMD_SET_MESSAGE_INTERVAL: stream ``message_id`` every ``interval_s`` seconds
+    (``interval_s < 0``: stop it; 0: the vehicle's default)."""
+    us = -1 if interval_s < 0 else int(round(interval_s * 1e6))
+    return command_long(enc, target_system, target_component, mav.MAV_CMD_SET_MESSAGE_INTERVAL, message_id, us)
+
+
+def statustext(enc: Any, text: str, severity: int) -> Any:
+    """STATUSTEXT, cut to the 50 characters the message carries."""
+    return enc.statustext_encode(severity, text.encode("ascii", "replace")[:50])

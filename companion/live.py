@@ -1,0 +1,616 @@
+"""The live companion: ``python -m companion run --connect URL [--arm] [--setpoint VX,VY]``.
+
+It wraps the same ``CompanionCore`` (through ``companion.inbound.MessageRouter``) and the same
+``companion.outbound`` messages the in-process scenarios use, so a lockstep run over UDP
+reproduces them frame for frame. What only a live loop needs lives here:
+
+- the link: wait for the vehicle's HEARTBEAT, ask for the streams with SET_MESSAGE_INTERVAL,
+  send our HEARTBEAT (component 191) at 1 Hz, and with ``--arm`` switch to GUIDED_NOGPS and arm
+  (without it, wait for the pilot; we take control only while armed in GUIDED_NOGPS, with the
+  PI integrator reset at each takeover and yaw held at its takeover value);
+- one control step per *new* flow frame (a frame whose time does not advance is a duplicate and
+  is dropped; one more than 1 s older than the last is a vehicle reboot and restarts the clock);
+  each step publishes POSITION_TARGET_LOCAL_NED and VISION_SPEED_ESTIMATE (not while holding)
+  and sends SET_ATTITUDE_TARGET (thrust 0.5) last, stamped with the flow frame's time;
+- setpoints: ``--setpoint VX,VY`` (constant), or a GCS's SET_POSITION_TARGET_LOCAL_NED to
+  component 191, or MANUAL_CONTROL sticks (full stick = ``companion.max_speed_m_s``). A GCS or
+  stick setpoint is held for ``companion.setpoint_timeout_s`` after its last refresh, then ramps
+  linearly back to the constant setpoint (zero without one) over another
+  ``setpoint_timeout_s`` (``decayed_setpoint``); ages are wall-clock, as they are link events;
+- failsafes, each commanding level attitude (hold) with a STATUSTEXT (WARNING) naming the cause
+  once per episode and "flowhold: resumed" (NOTICE) when good again: per frame the core's causes
+  (flow quality 0, spike, gyro missing or saturated, range missing, stale or outside the sensor's
+  limits); by vehicle time, flow stale (the gyro's clock runs on but no new flow frame for
+  ``companion.flow_timeout_s``); by wall clock, no flow frame at all for ``flow_timeout_s``
+  (flow stale, or link lost when nothing comes from the vehicle), when level commands keep
+  going out at the frame rate;
+- no command leaves that is not finite and inside the tilt limit; a message that cannot be
+  handled is counted and dropped, never fatal.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import signal
+import sys
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from companion import link, outbound
+from companion.config import Config, load_config
+from companion.controller import PiState
+from companion.core import CompanionCore, HoldCause, StepOutput
+from companion.errors import LinkError, UsageError
+from companion.inbound import MessageRouter, scalar_flow
+from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, Profile
+from companion.tlog_writer import TlogWriter
+
+mav = link.mav
+
+#: seconds to wait for the vehicle's first HEARTBEAT before giving up
+CONNECT_TIMEOUT_S = 30.0
+#: a vehicle HEARTBEAT older than this (wall clock, s) means the link is lost
+HEARTBEAT_TIMEOUT_S = 3.0
+#: a flow frame more than this much older than the last one is a vehicle reboot (s)
+REBOOT_JUMP_S = 1.0
+COMMAND_RETRY_S = 1.0
+COMMAND_TRIES = 5
+STATUS_PERIOD_TTY_S = 0.25
+STATUS_PERIOD_LOG_S = 5.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Pure pieces
+
+
+def parse_setpoint(text: str) -> tuple[float, float]:
+    """``"VX,VY"`` (m/s, body frame) -> (vx, vy); UsageError when malformed or not finite."""
+    parts = str(text).split(",")
+    try:
+        vx, vy = (float(p) for p in parts)
+    except ValueError:
+        raise UsageError(f"--setpoint: expected VX,VY in m/s (e.g. 1.5,0), got {text!r}") from None
+    if not (math.isfinite(vx) and math.isfinite(vy)):
+        raise UsageError(f"--setpoint: values must be finite, got {text!r}")
+    return vx, vy
+
+
+def decayed_setpoint(setpoint_m_s: tuple[float, float], base_m_s: tuple[float, float], age_s: float,
+                     timeout_s: float) -> tuple[float, float]:
+    """A GCS/stick setpoint ``age_s`` after its last refresh: held for ``timeout_s``, then a
+    linear ramp to ``base_m_s`` that arrives ``2 timeout_s`` after the refresh."""
+    if age_s <= timeout_s:
+        return setpoint_m_s
+    f = max(0.0, 1.0 - (age_s - timeout_s) / timeout_s)
+    return (base_m_s[0] + f * (setpoint_m_s[0] - base_m_s[0]), base_m_s[1] + f * (setpoint_m_s[1] - base_m_s[1]))
+
+
+class FrameOrder(enum.Enum):
+    NEW = "new"
+    DUPLICATE = "duplicate or out of order"
+    REBOOT = "vehicle reboot"
+
+
+def classify_frame(prev_time_s: float | None, time_s: float, reboot_jump_s: float = REBOOT_JUMP_S) -> FrameOrder:
+    """Is a flow frame at ``time_s`` new, a repeat, or the first after a reboot?"""
+    if prev_time_s is None or time_s > prev_time_s:
+        return FrameOrder.NEW
+    if time_s < prev_time_s - reboot_jump_s:
+        return FrameOrder.REBOOT
+    return FrameOrder.DUPLICATE
+
+
+def safe_attitude(roll_rad: float, pitch_rad: float, limit_rad: float) -> tuple[float, float, bool]:
+    """The command that may leave: finite and inside +-limit. Returns (roll, pitch, was_ok);
+    a non-finite command becomes level."""
+    if not (math.isfinite(roll_rad) and math.isfinite(pitch_rad)):
+        return 0.0, 0.0, False
+    r = min(max(roll_rad, -limit_rad), limit_rad)
+    p = min(max(pitch_rad, -limit_rad), limit_rad)
+    return r, p, (r, p) == (roll_rad, pitch_rad)
+
+
+class HoldMonitor:
+    """Turns the hold cause of each step into STATUSTEXTs: one per change of cause."""
+
+    def __init__(self) -> None:
+        self.cause = HoldCause.NONE
+        self.episodes = 0
+
+    def update(self, cause: HoldCause) -> tuple[str, int] | None:
+        """(text, severity) to send, or None when nothing changed."""
+        if cause == self.cause:
+            return None
+        was_holding = self.cause is not HoldCause.NONE
+        self.cause = cause
+        if cause is HoldCause.NONE:
+            return "flowhold: resumed", mav.MAV_SEVERITY_NOTICE
+        if not was_holding:
+            self.episodes += 1
+        return f"flowhold: HOLD {cause.value}", mav.MAV_SEVERITY_WARNING
+
+
+@dataclass
+class PendingCommand:
+    what: str
+    command: int
+    params: tuple[float, ...]
+    required: bool
+    tries: int = 0
+    next_send_s: float = 0.0
+
+
+class Commander:
+    """COMMAND_LONGs sent one at a time, resent until COMMAND_ACK (times passed in)."""
+
+    def __init__(self) -> None:
+        self.queue: deque[PendingCommand] = deque()
+        self.warnings: list[str] = []
+
+    def add(self, what: str, command: int, *params: float, required: bool = True) -> None:
+        self.queue.append(PendingCommand(what, command, params, required))
+
+    @property
+    def idle(self) -> bool:
+        return not self.queue
+
+    def poll(self, now_s: float, send: Callable[[PendingCommand], None]) -> None:
+        if not self.queue:
+            return
+        head = self.queue[0]
+        if now_s < head.next_send_s:
+            return
+        if head.tries >= COMMAND_TRIES:
+            self.queue.popleft()
+            if head.required:
+                raise LinkError(f"the vehicle never acknowledged: {head.what}")
+            self.warnings.append(f"no answer to {head.what}")
+            return
+        send(head)
+        head.tries += 1
+        head.next_send_s = now_s + COMMAND_RETRY_S
+
+    def on_ack(self, command: int, result: int) -> PendingCommand | None:
+        """The pending command this ACK answers (popped), or None. Raises LinkError when a
+        required command is refused."""
+        if not self.queue or self.queue[0].command != command:
+            return None
+        if result == mav.MAV_RESULT_IN_PROGRESS:
+            return None
+        head = self.queue.popleft()
+        if result != mav.MAV_RESULT_ACCEPTED:
+            name = mav.enums["MAV_RESULT"][result].name if result in mav.enums["MAV_RESULT"] else str(result)
+            if head.required:
+                raise LinkError(f"the vehicle refused: {head.what} ({name})")
+            self.warnings.append(f"{head.what}: {name}")
+        return head
+
+
+# ---------------------------------------------------------------------------------------------
+# The loop
+
+
+class LiveCompanion:
+    """The companion's live loop over one pymavlink connection (see the module docstring)."""
+
+    def __init__(self, cfg: Config, profile: Profile, conn: Any, *, url: str = "", arm: bool = False,
+                 setpoint_m_s: tuple[float, float] | None = None, tlog: str | None = None,
+                 vehicle_sysid: int | None = None, quiet: bool = False,
+                 clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time,
+                 out: Callable[[str], None] | None = None) -> None:
+        self.cfg = cfg
+        self.profile = profile
+        self.conn = conn
+        self.url = url
+        self.arm = arm
+        self.clock = clock
+        self.wall = wall
+        self.quiet = quiet
+        self.out = out or (lambda text: print(text, flush=True))
+        self.core = CompanionCore(cfg, profile)
+        self.router = MessageRouter(self.core, profile, vehicle_sysid=vehicle_sysid)
+        self.want_sysid = vehicle_sysid
+        self.vehicle_compid = 1
+        self.base_setpoint = setpoint_m_s or (0.0, 0.0)
+        self.gcs_setpoint: tuple[float, float] | None = None
+        self.gcs_setpoint_wall = 0.0
+        self.T = cfg.flow_sensor.frame_period_s
+        self.tilt_limit = cfg.controller.tilt_limit_rad
+        self.commander = Commander()
+        self.monitor = HoldMonitor()
+        self.counters: Counter[str] = Counter()
+        self.tlog = TlogWriter(tlog) if tlog else None
+        self.tlog_path = tlog
+        # vehicle state
+        self.armed = False
+        self.mode = -1
+        self.in_control = False
+        self.yaw_hold = 0.0
+        self.control_start: float | None = None
+        # sensor clocks (vehicle time, s) and wall times of arrival
+        self.last_flow_time_s: float | None = None
+        self.flow_ref_s: float | None = None  # vehicle time from which flow staleness is measured
+        self.last_gyro_time_s: float | None = None
+        self.vehicle_time_s: float | None = None  # time of the latest gyro or flow sample
+        self.last_hold_stamp_s: float | None = None
+        self.last_flow_wall = -math.inf
+        self.last_vehicle_wall = -math.inf
+        self.last_heartbeat_wall = -math.inf
+        self.last_cmd_wall = -math.inf
+        self.last_step: StepOutput | None = None
+        self.last_cmd_rad = (0.0, 0.0)
+        self._next_heartbeat = -math.inf
+        self._next_status = -math.inf
+        self._next_wall_hold = -math.inf
+        self._flow_times: deque[float] = deque(maxlen=50)
+        self._link_lost_reported = False
+        self._tty = sys.stdout.isatty()
+        #: set by a signal handler (Ctrl-C, SIGTERM): the loop ends between two messages
+        self.stop_requested = False
+
+    # -- sending -------------------------------------------------------------------------
+
+    def _send(self, *msgs: Any) -> None:
+        """Pack ``msgs`` in order and write them in one go (one datagram on UDP)."""
+        enc = self.conn.mav
+        bufs = []
+        for msg in msgs:
+            buf = bytes(msg.pack(enc))
+            enc.seq = (enc.seq + 1) % 256
+            enc.total_packets_sent += 1
+            enc.total_bytes_sent += len(buf)
+            bufs.append(buf)
+        try:
+            self.conn.write(b"".join(bufs))
+        except Exception:  # noqa: BLE001 - a full buffer or a gone serial port must not stop the loop
+            self.counters["send errors"] += 1
+            return
+        if self.tlog is not None:
+            stamp = self.wall()
+            for buf in bufs:
+                self.tlog.write_bytes(buf, stamp)
+
+    def _statustext(self, text: str, severity: int) -> None:
+        self._send(link.statustext(self.conn.mav, text, severity))
+        self.out(text)
+
+    def _send_command(self, p: PendingCommand) -> None:
+        self._send(link.command_long(self.conn.mav, self.router.vehicle_sysid or 1, self.vehicle_compid,
+                                     p.command, *p.params))
+
+    # -- connection ----------------------------------------------------------------------
+
+    def connect(self, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+        """Send our HEARTBEAT until a vehicle's arrives (LinkError after ``timeout_s``)."""
+        self.out(f"flowhold: waiting for a vehicle on {self.url} ...")
+        deadline = self.clock() + timeout_s
+        while self.router.vehicle_sysid is None and not self.stop_requested:
+            now = self.clock()
+            if now > deadline:
+                raise LinkError(f"no HEARTBEAT from a vehicle on {self.url} within {timeout_s:g} s")
+            self._heartbeat(now)
+            msg = self._recv()
+            if msg is None:
+                self.conn.select(0.05)
+                continue
+            if link.is_vehicle_heartbeat(msg) and self.want_sysid in (None, msg.get_srcSystem()):
+                self.router.vehicle_sysid = msg.get_srcSystem()
+                self.vehicle_compid = msg.get_srcComponent()
+                self.conn.mav.srcSystem = msg.get_srcSystem()  # a companion shares its vehicle's system id
+                self._on_message(msg, now)
+                self.out(f"flowhold: vehicle {msg.get_srcSystem()} heard ({link.mode_name(msg.custom_mode)}, "
+                         f"{'armed' if link.heartbeat_armed(msg) else 'disarmed'})")
+        if self.stop_requested:
+            return
+        for name in (FLOW_MESSAGE[self.profile], "RAW_IMU", "DISTANCE_SENSOR", "ATTITUDE"):
+            mid = getattr(mav, f"MAVLINK_MSG_ID_{name}")
+            self.commander.add(f"stream {name} at {1 / self.T:g} Hz", mav.MAV_CMD_SET_MESSAGE_INTERVAL, mid,
+                               round(self.T * 1e6), required=False)
+        if self.arm:
+            if self.mode != link.GUIDED_NOGPS:
+                self.commander.add("switch to GUIDED_NOGPS", mav.MAV_CMD_DO_SET_MODE,
+                                   mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, link.GUIDED_NOGPS)
+            if not self.armed:
+                self.commander.add("arm", mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        else:
+            self.out("flowhold: waiting for the pilot to arm in GUIDED_NOGPS")
+
+    def _recv(self) -> Any | None:
+        try:
+            msg = self.conn.recv_msg()
+        except Exception:  # noqa: BLE001 - garbage on the wire: drop it, go on
+            self.counters["unreadable input"] += 1
+            return None
+        if msg is None:
+            return None
+        if msg.get_type() == "BAD_DATA":
+            self.counters["bad packets"] += 1
+            return None
+        if self.tlog is not None:
+            self.tlog.write_bytes(bytes(msg.get_msgbuf()), self.wall())
+        return msg
+
+    # -- incoming ------------------------------------------------------------------------
+
+    def _from_vehicle(self, msg: Any) -> bool:
+        return msg.get_srcSystem() == self.router.vehicle_sysid and msg.get_srcComponent() == self.vehicle_compid
+
+    def _on_message(self, msg: Any, now: float) -> None:
+        mtype = msg.get_type()
+        vehicle = self._from_vehicle(msg)
+        if vehicle:
+            self.last_vehicle_wall = now
+        if mtype == "HEARTBEAT":
+            if vehicle:
+                self.last_heartbeat_wall = now
+                self.armed = link.heartbeat_armed(msg)
+                self.mode = msg.custom_mode
+        elif mtype == "COMMAND_ACK":
+            if vehicle and msg.target_component in (0, outbound.COMPANION_COMPONENT):
+                done = self.commander.on_ack(msg.command, msg.result)
+                if done is not None and msg.result == mav.MAV_RESULT_ACCEPTED:
+                    if done.command == mav.MAV_CMD_DO_SET_MODE:
+                        self.mode = link.GUIDED_NOGPS
+                    elif done.command == mav.MAV_CMD_COMPONENT_ARM_DISARM:
+                        self.armed = True
+        elif mtype in ("SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL"):
+            self.router.last_setpoint_time = None
+            self.router.handle(msg, now)
+            if self.router.last_setpoint_time is not None:
+                self.gcs_setpoint = self.core.setpoint_m_s
+                self.gcs_setpoint_wall = now
+        elif mtype == FLOW_MESSAGE[self.profile]:
+            if vehicle:
+                self._on_flow(msg, now)
+            else:
+                self.counters["flow from another system"] += 1
+        elif mtype in GYRO_MESSAGES:
+            if vehicle:
+                self.router.handle(msg, now)
+                self._on_gyro_time(msg.time_usec * 1e-6, now)
+        elif vehicle:
+            self.router.handle(msg, now)  # DISTANCE_SENSOR, ATTITUDE (yaw)
+        self._update_control(now)
+
+    def _update_control(self, now: float) -> None:
+        want = self.armed and self.mode == link.GUIDED_NOGPS
+        if want and not self.in_control:
+            self.in_control = True
+            self.core.pi.state = PiState()
+            self.yaw_hold = self.router.yaw_rad
+            self.control_start = now if self.control_start is None else self.control_start
+            self.flow_ref_s = self.last_flow_time_s
+            self.last_flow_wall = max(self.last_flow_wall, now)  # the flow timeout runs from the takeover
+            self.out("flowhold: in control (armed, GUIDED_NOGPS)")
+            if self.last_flow_time_s is not None:  # take over from level at the latest frame
+                sp = self._effective_setpoint(now)
+                self._command(self.last_flow_time_s, 0.0, 0.0, sp[0], sp[1], now, estimate=None)
+        elif not want and self.in_control:
+            self.in_control = False
+            self.out(f"flowhold: released control ({'armed' if self.armed else 'disarmed'}, "
+                     f"{link.mode_name(self.mode)})")
+
+    def _effective_setpoint(self, now: float) -> tuple[float, float]:
+        if self.gcs_setpoint is None:
+            return self.base_setpoint
+        return decayed_setpoint(self.gcs_setpoint, self.base_setpoint, now - self.gcs_setpoint_wall,
+                                self.cfg.companion.setpoint_timeout_s)
+
+    def _on_flow(self, msg: Any, now: float) -> None:
+        t = scalar_flow(msg, self.profile, self.cfg.flow_sensor.q_rad_per_count).time_s
+        if math.isfinite(t):
+            order = classify_frame(self.last_flow_time_s, t)
+            if order is FrameOrder.DUPLICATE:
+                self.counters["flow frames repeated or out of order"] += 1
+                return
+            if order is FrameOrder.REBOOT:
+                self.counters["vehicle reboots"] += 1
+                self.out(f"flowhold: the vehicle's clock restarted ({self.last_flow_time_s:.3f} s -> {t:.3f} s)")
+        self.core.set_setpoint(*self._effective_setpoint(now))
+        out = self.router.handle(msg, now)
+        if out is None:
+            return
+        if math.isfinite(t):
+            self.last_flow_time_s = t
+            self.flow_ref_s = t
+            self.vehicle_time_s = t
+        self.last_flow_wall = now
+        self._flow_times.append(now)
+        self.counters["steps"] += 1
+        self.last_step = out
+        if not self.in_control:
+            self.core.pi.state = PiState()  # the pilot flies: no integration
+            if not out.holding:
+                self._send(outbound.vision_speed(self.conn.mav, int(round(out.time_s * 1e6)), out.vx_m_s,
+                                                 out.vy_m_s))
+            return
+        self._command(out.time_s, out.roll_cmd_rad, out.pitch_cmd_rad, out.vx_set_m_s, out.vy_set_m_s, now,
+                      estimate=None if out.holding else (out.vx_m_s, out.vy_m_s))
+        self._report(out.hold_cause)
+
+    def _on_gyro_time(self, t_s: float, now: float) -> None:
+        """Flow staleness on the vehicle's own clock: the gyro's time runs on, the flow's does not."""
+        if self.last_gyro_time_s is not None and t_s < self.last_gyro_time_s - REBOOT_JUMP_S:
+            self.flow_ref_s = None  # reboot (or a bogus time): measure again from the next sample
+        self.last_gyro_time_s = t_s
+        self.vehicle_time_s = t_s
+        if not self.in_control:
+            return
+        if self.flow_ref_s is None or t_s < self.flow_ref_s - REBOOT_JUMP_S:
+            self.flow_ref_s = t_s
+        if t_s - self.flow_ref_s > self.cfg.companion.flow_timeout_s + 1e-9 and t_s != self.last_hold_stamp_s:
+            self.last_hold_stamp_s = t_s
+            self.counters["holds: flow stale (vehicle time)"] += 1
+            sp = self._effective_setpoint(now)
+            self._command(t_s, 0.0, 0.0, sp[0], sp[1], now, estimate=None)
+            self._report(HoldCause.FLOW_STALE)
+
+    def _command(self, time_s: float, roll: float, pitch: float, vx_set: float, vy_set: float, now: float, *,
+                 estimate: tuple[float, float] | None) -> None:
+        """Publish the step: POSITION_TARGET_LOCAL_NED, VISION_SPEED_ESTIMATE, then SET_ATTITUDE_TARGET."""
+        roll, pitch, ok = safe_attitude(roll, pitch, self.tilt_limit)
+        if not ok:
+            self.counters["commands clipped or levelled"] += 1
+        ms = int(round(time_s * 1e3)) if math.isfinite(time_s) else 0
+        enc = self.conn.mav
+        if not (math.isfinite(vx_set) and math.isfinite(vy_set)):
+            vx_set = vy_set = 0.0
+        msgs = [outbound.position_target(enc, ms, vx_set, vy_set)]
+        if estimate is not None and all(math.isfinite(v) for v in estimate):
+            msgs.append(outbound.vision_speed(enc, int(round(time_s * 1e6)), *estimate))
+        msgs.append(outbound.set_attitude_target(enc, ms, self.router.vehicle_sysid or 1, roll, pitch,
+                                                 self.yaw_hold, self.vehicle_compid))
+        self._send(*msgs)
+        self.last_cmd_wall = now
+        self.last_cmd_rad = (roll, pitch)
+        self.counters["commands"] += 1
+
+    def _report(self, cause: HoldCause) -> None:
+        said = self.monitor.update(cause)
+        if said is not None:
+            self._statustext(*said)
+
+    # -- periodic ------------------------------------------------------------------------
+
+    def _heartbeat(self, now: float) -> None:
+        if now >= self._next_heartbeat:
+            self._next_heartbeat = now + 1.0
+            self._send(outbound.heartbeat(self.conn.mav))
+
+    def _watchdog(self, now: float) -> None:
+        """Wall-clock failsafe: no flow frame for flow_timeout_s -> level commands at the frame rate."""
+        lost = now - self.last_heartbeat_wall > HEARTBEAT_TIMEOUT_S
+        if lost != self._link_lost_reported:
+            self._link_lost_reported = lost
+            self.out("flowhold: link lost (no vehicle HEARTBEAT)" if lost else "flowhold: link back")
+        if not self.in_control:
+            return
+        timeout = self.cfg.companion.flow_timeout_s
+        if now - self.last_flow_wall <= timeout:
+            self._next_wall_hold = now + self.T
+        elif now >= self._next_wall_hold and now - self.last_cmd_wall >= 0.5 * self.T:
+            self._next_wall_hold = max(self._next_wall_hold + self.T, now - self.T)  # frame rate, no burst
+            cause = HoldCause.LINK if now - self.last_vehicle_wall > timeout else HoldCause.FLOW_STALE
+            self.counters[f"holds: {cause.value} (wall clock)"] += 1
+            # stamped with the vehicle's latest sensor time: a lockstep vehicle waiting on that frame takes
+            # it, one that has moved on (its frames arrive whole, flow with gyro) ignores it as stale
+            stamp = self.vehicle_time_s if self.vehicle_time_s is not None else 0.0
+            sp = self._effective_setpoint(now)
+            self._command(stamp, 0.0, 0.0, sp[0], sp[1], now, estimate=None)
+            self._report(cause)
+
+    def status_line(self, now: float) -> str:
+        s = self.last_step
+        sp = self._effective_setpoint(now)
+        rate = 0.0
+        if len(self._flow_times) >= 2 and self._flow_times[-1] > self._flow_times[0]:
+            rate = (len(self._flow_times) - 1) / (self._flow_times[-1] - self._flow_times[0])
+        hb = now - self.last_heartbeat_wall
+        est = f"{s.vx_m_s:+.2f} {s.vy_m_s:+.2f}" if s is not None and not s.holding else "  --    -- "
+        t = f"{s.time_s:7.2f}" if s is not None else "    --"
+        state = "CONTROL" if self.in_control else "standby"
+        hold = f" HOLD: {self.monitor.cause.value}" if self.monitor.cause is not HoldCause.NONE else ""
+        roll, pitch = (math.degrees(a) for a in self.last_cmd_rad)
+        return (f"flowhold t {t} s  set {sp[0]:+.2f} {sp[1]:+.2f}  est {est} m/s  cmd roll {roll:+5.1f} "
+                f"pitch {pitch:+5.1f} deg  {state}  link {'LOST' if hb > HEARTBEAT_TIMEOUT_S else 'ok'} "
+                f"(hb {min(hb, 99.9):.1f} s, flow {rate:.0f} Hz){hold}")
+
+    def _status(self, now: float) -> None:
+        if self.quiet or now < self._next_status:
+            return
+        self._next_status = now + (STATUS_PERIOD_TTY_S if self._tty else STATUS_PERIOD_LOG_S)
+        line = self.status_line(now)
+        if self._tty:
+            sys.stdout.write("\r" + line[:150].ljust(150))
+            sys.stdout.flush()
+        else:
+            self.out(line)
+
+    # -- main loop -----------------------------------------------------------------------
+
+    def run(self, duration_s: float | None = None) -> None:
+        """Run until ``duration_s`` seconds of control (wall clock) or ``stop_requested``."""
+        while not self.stop_requested:
+            now = self.clock()
+            self._heartbeat(now)
+            self.commander.poll(now, self._send_command)
+            while self.commander.warnings:
+                self.out(f"flowhold: warning: {self.commander.warnings.pop(0)}")
+            self._watchdog(now)
+            self._status(now)
+            if duration_s is not None and self.control_start is not None and now - self.control_start >= duration_s:
+                return
+            msg = self._recv()
+            if msg is None:
+                self.conn.select(min(self.T / 2, 0.01))
+                continue
+            try:
+                self._on_message(msg, self.clock())
+            except Exception as exc:  # noqa: BLE001 - one bad message must not stop the loop
+                key = f"unhandled {msg.get_type()}: {type(exc).__name__}"
+                if self.counters[key] == 0:
+                    print(f"flowhold: dropped a message ({key}: {exc})", file=sys.stderr, flush=True)
+                self.counters[key] += 1
+
+    def close(self) -> None:
+        if self._tty and not self.quiet:
+            sys.stdout.write("\n")
+        if self.tlog is not None:
+            self.tlog.close()
+        try:
+            self.conn.close()
+        except Exception:  # noqa: BLE001 - closing a dead link is not an error
+            pass
+
+    def summary(self) -> str:
+        c = self.counters
+        parts = [f"{c['steps']} steps", f"{c['commands']} commands", f"{self.monitor.episodes} hold episode(s)"]
+        parts += [f"{k}: {v}" for k, v in sorted(c.items()) if k not in ("steps", "commands")]
+        return "flowhold: " + ", ".join(parts)
+
+
+def run_cli(args: Any) -> int:
+    """``python -m companion run``: 0 after ``--duration`` of control or a clean Ctrl-C / SIGTERM."""
+    setpoint = parse_setpoint(args.setpoint) if args.setpoint else None
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise UsageError(f"--duration must be a positive number of seconds, got {args.duration}")
+    if args.vehicle_sysid is not None and not 1 <= args.vehicle_sysid <= 255:
+        raise UsageError(f"--vehicle-sysid must be in 1..255, got {args.vehicle_sysid}")
+    cfg = load_config(args.config)
+    profile = Profile(args.profile or "paper")
+    key = link.signing_key(args.signing_key) if args.signing_key else None
+    link.check_url(args.connect)
+    conn = link.open_connection(args.connect, source_system=args.vehicle_sysid or 1,
+                                source_component=outbound.COMPANION_COMPONENT)
+    if key is not None:
+        link.setup_signing(conn.mav, key)
+    try:
+        if args.tlog:
+            Path(args.tlog).parent.mkdir(parents=True, exist_ok=True)
+        live = LiveCompanion(cfg, profile, conn, url=args.connect, arm=args.arm, setpoint_m_s=setpoint,
+                             tlog=args.tlog, vehicle_sysid=args.vehicle_sysid, quiet=args.quiet)
+    except OSError as exc:
+        conn.close()
+        raise UsageError(f"--tlog: cannot write {args.tlog}: {exc.strerror or exc}") from None
+
+    def request_stop(_signum: int, _frame: Any) -> None:
+        live.stop_requested = True
+
+    old = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        live.connect()
+        live.run(args.duration)
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        live.close()
+    if live.router.vehicle_sysid is not None:
+        print(live.summary(), flush=True)
+    print(f"flowhold: {'stopped' if live.stop_requested else 'done'}"
+          + (f"; recording {args.tlog}" if args.tlog else ""), flush=True)
+    return 0
