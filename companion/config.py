@@ -110,6 +110,11 @@ class CompanionSettings:
     max_gyro_skew_s: float
     #: |flow counts| per frame beyond this are a spike (outlier), not motion
     max_flow_counts_per_frame: int
+    #: body rate for eq. 15: "imu" (RAW_IMU nearest the frame), "flow" (the flow message's own
+    #: body rate), or "auto" (flow for the ardupilot profile, imu otherwise; docs/ardupilot.md)
+    gyro_source: str
+    #: "none" (eq. 15 as the paper has it) or "tilt" (the attitude-predicted observer, core.TiltFilter)
+    velocity_filter: str
 
 
 # ---------------------------------------------------------------------------------------------
@@ -306,6 +311,8 @@ def validate(cfg: Config) -> None:
         (cfg.sim.substeps_per_frame >= 4, "sim.substeps_per_frame must be >= 4 (much finer than a frame)"),
         (cfg.companion.max_speed_m_s > 0, "companion.max_speed_m_s must be > 0"),
         (cfg.companion.max_flow_counts_per_frame > 0, "companion.max_flow_counts_per_frame must be > 0"),
+        (cfg.companion.gyro_source in ("auto", "imu", "flow"), "companion.gyro_source must be auto, imu or flow"),
+        (cfg.companion.velocity_filter in ("none", "tilt"), "companion.velocity_filter must be none or tilt"),
     ]
     for ok, message in checks:
         if not ok:

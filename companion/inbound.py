@@ -18,13 +18,22 @@ from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FieldView, FlowColum
 DOWNWARD = 25  # MAV_SENSOR_ROTATION_PITCH_270
 BODY_FRAMES = (8, 9, 12)  # MAV_FRAME_BODY_NED, BODY_OFFSET_NED, BODY_FRD
 LOCAL_NED = 1
+INT16_CLIP = 32767  # RAW_IMU / SCALED_IMU gyro fields (mrad/s) at this magnitude have clipped
 
 
 def scalar_flow(msg: Any, profile: Profile, q_rad_per_count: float) -> FlowColumns:
     """One flow message as scalars in the paper's convention."""
     c = flow_columns(FieldView(msg), profile, q_rad_per_count)
     return FlowColumns(float(c.time_s), float(c.scene_x), float(c.scene_y), c.increment,
-                       float(c.integration_s), int(c.quality), float(c.counts_x), float(c.counts_y))
+                       float(c.integration_s), int(c.quality), float(c.counts_x), float(c.counts_y),
+                       float(c.body_x_rad_s), float(c.body_y_rad_s))
+
+
+def gyro_time_s(msg: Any) -> float:
+    """Sensor time of a gyro message, s: RAW_IMU / HIGHRES_IMU carry ``time_usec``, SCALED_IMU
+    only ``time_boot_ms``."""
+    t_us = getattr(msg, "time_usec", None)
+    return t_us * 1e-6 if t_us is not None else msg.time_boot_ms * 1e-3
 
 
 @dataclass
@@ -53,7 +62,10 @@ class MessageRouter:
             return None
         if mtype in GYRO_MESSAGES:
             scale = GYRO_MESSAGES[mtype]
-            self.core.on_gyro(msg.time_usec * 1e-6, msg.xgyro * scale, msg.ygyro * scale)
+            gx, gy = msg.xgyro * scale, msg.ygyro * scale
+            if mtype != "HIGHRES_IMU" and max(abs(msg.xgyro), abs(msg.ygyro)) >= INT16_CLIP:
+                gx = gy = math.nan  # the int16 mrad/s field clipped: the rate is unknown (saturated)
+            self.core.on_gyro(gyro_time_s(msg), gx, gy)
         elif mtype == "DISTANCE_SENSOR":
             if msg.orientation != DOWNWARD:
                 self._ignore("range not facing down")
@@ -65,6 +77,7 @@ class MessageRouter:
         elif mtype == "ATTITUDE":
             if math.isfinite(msg.yaw):
                 self.yaw_rad = msg.yaw
+            self.core.on_attitude(msg.time_boot_ms * 1e-3, msg.roll, msg.pitch)
         elif mtype == FLOW_MESSAGE[self.profile]:
             return self.core.on_flow(scalar_flow(msg, self.profile, self.core.cfg.flow_sensor.q_rad_per_count))
         return None

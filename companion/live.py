@@ -46,7 +46,7 @@ from companion.config import Config, load_config
 from companion.controller import PiState
 from companion.core import CompanionCore, HoldCause, StepOutput
 from companion.errors import LinkError, UsageError
-from companion.inbound import MessageRouter, scalar_flow
+from companion.inbound import MessageRouter, gyro_time_s, scalar_flow
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, Profile
 from companion.tlog_writer import TlogWriter
 
@@ -372,7 +372,7 @@ class LiveCompanion:
         elif mtype in GYRO_MESSAGES:
             if vehicle:
                 self.router.handle(msg, now)
-                self._on_gyro_time(msg.time_usec * 1e-6, now)
+                self._on_gyro_time(gyro_time_s(msg), now)
         elif vehicle:
             self.router.handle(msg, now)  # DISTANCE_SENSOR, ATTITUDE (yaw)
         self._update_control(now)
@@ -414,6 +414,9 @@ class LiveCompanion:
         self.core.set_setpoint(*self._effective_setpoint(now))
         out = self.router.handle(msg, now)
         if out is None:
+            return
+        if out.repeat:  # the same flow sample again (ArduPilot streams faster than the sensor)
+            self.counters["flow samples repeated"] += 1
             return
         if math.isfinite(t):
             self.last_flow_time_s = t

@@ -51,7 +51,11 @@ class FlowColumns:
     angle increments over the frame (rad) and False when they are rates (rad/s).
     ``integration_s``: the integration time the message states (px4), else NaN: the frame
     spacing is used. ``quality``: 0 = invalid. ``counts_x/y``: the raw counts (paper profile;
-    NaN otherwise), for plots and spike checks.
+    NaN otherwise), for plots and spike checks. ``body_x/y_rad_s``: the body rates (roll rate
+    omega_x, pitch rate omega_y, rad/s) the message carries for its own flow sample, NaN when
+    the profile has none: ardupilot ``flow_rate - flow_comp_m`` (ArduPilot's ``bodyRate``, the
+    gyro it uses to compensate that sample), px4 ``integrated_x/ygyro`` over the integration
+    time. The companion uses them only with ``--gyro flow`` (``core.GyroSource``).
     """
 
     time_s: Any
@@ -62,6 +66,8 @@ class FlowColumns:
     quality: Any
     counts_x: Any
     counts_y: Any
+    body_x_rad_s: Any = np.nan
+    body_y_rad_s: Any = np.nan
 
 
 def flow_columns(fields: Any, profile: Profile, q_rad_per_count: float) -> FlowColumns:
@@ -94,18 +100,27 @@ def flow_columns(fields: Any, profile: Profile, q_rad_per_count: float) -> FlowC
             quality=np.asarray(f["quality"]),
             counts_x=np.full_like(rx, nan),
             counts_y=np.full_like(rx, nan),
+            # flow_comp_m = flowRate - bodyRate (rad/s despite the name): the sample's own body rate
+            body_x_rad_s=rx - np.asarray(f["flow_comp_m_x"], dtype=float),
+            body_y_rad_s=ry - np.asarray(f["flow_comp_m_y"], dtype=float),
         )
     ix = np.asarray(f["integrated_x"], dtype=float)
     iy = np.asarray(f["integrated_y"], dtype=float)
+    integration_s = np.asarray(f["integration_time_us"], dtype=float) * 1e-6
+    with np.errstate(all="ignore"):  # an integration time of 0 gives no body rate (inf/NaN: gated)
+        body_x = np.asarray(f["integrated_xgyro"], dtype=float) / integration_s
+        body_y = np.asarray(f["integrated_ygyro"], dtype=float) / integration_s
     return FlowColumns(
         time_s=np.asarray(f["time_usec"], dtype=float) * 1e-6,
         scene_x=-iy,
         scene_y=+ix,
         increment=True,
-        integration_s=np.asarray(f["integration_time_us"], dtype=float) * 1e-6,
+        integration_s=integration_s,
         quality=np.asarray(f["quality"]),
         counts_x=np.full_like(ix, nan),
         counts_y=np.full_like(ix, nan),
+        body_x_rad_s=body_x,
+        body_y_rad_s=body_y,
     )
 
 

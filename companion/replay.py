@@ -1,0 +1,654 @@
+"""Replay: the companion's estimator and controller over a recording, one row per flow frame.
+
+    python -m companion replay RECORDING --csv OUT.csv [--config FILE] [--profile P] [--plot OUT.png]
+                                         [--gyro {auto,imu,flow}] [--filter {none,tilt}]
+
+The live code path over the recorded messages, fast: the recording is read into columns
+(``companion.recording.load_recording``), the live core's alignment rules are applied to whole
+columns (``core.align_gyro_columns``, ``core.latest_before``, ``core.repeat_mask``: only the
+gyro, range, attitude and heartbeat messages received *before* each flow message count, as in
+the live loop), gating and eq. 15 run on whole columns (``core.gate_frames``,
+``core.estimate_frames``) and the sequential part (``core.run_control``: optional filter and PI)
+runs over the frames in order. ``replay_live`` feeds the same recording message by message to the
+live ``MessageRouter`` and ``CompanionCore``; the tests hold the two equal.
+
+Per frame, from the recording:
+- the velocity setpoint: the companion's POSITION_TARGET_LOCAL_NED (component 191) whose
+  ``time_boot_ms`` is the frame's time (the companion sends it after the command of the same
+  step, so it is matched by time, not order); else the GCS's latest SET_POSITION_TARGET_LOCAL_NED
+  received before the frame, held for ``companion.setpoint_timeout_s`` and then ramped to 0 as
+  the live loop does (MANUAL_CONTROL sticks are not replayed: the companion's own
+  POSITION_TARGET_LOCAL_NED records what they gave); else 0;
+- whether the companion was engaged: the vehicle's latest HEARTBEAT before the frame says
+  GUIDED_NOGPS (ArduCopter custom_mode 20) and armed; for a non-ArduPilot autopilot, armed;
+  without vehicle heartbeats, always. Control starts afresh (integrator 0) at each engagement;
+- truth, when the recording has LOCAL_POSITION_NED: its velocity at the frame's time, rotated
+  into body axes by the ATTITUDE yaw;
+- the recorded command (SET_ATTITUDE_TARGET from component 191, matched by ``time_boot_ms``,
+  as roll and pitch) and estimate (VISION_SPEED_ESTIMATE, matched by ``usec``), when present.
+
+CSV columns (``CSV_COLUMNS``; SI units in the names): ``t_s`` the flow message's log time minus
+the recording's first record; ``vx_m_s``, ``vy_m_s`` the estimate the PI used (after the optional
+filter; NaN on held frames); ``roll_cmd_rad``, ``pitch_cmd_rad`` the command; ``frame_time_s`` the
+flow message's own (boot) time; ``dt_s`` the time the frame covers; ``vx_set_m_s``,
+``vy_set_m_s``; ``hold_cause`` a ``core.HoldCause`` name (empty: controlled); ``engaged`` 0/1;
+``vx_raw_m_s``, ``vy_raw_m_s`` eq. 15 before the filter; ``scene_rate_x/y_rad_s`` the flow in the
+paper's convention; ``flow_x/y_counts`` (paper profile; NaN otherwise); ``quality``;
+``gyro_x/y_rad_s`` and ``range_m`` as used; then, when the recording has them, ``truth_vx/vy_m_s``
+and the companion's recorded ``rec_roll/pitch_cmd_rad`` and ``rec_vx/vy_m_s``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.config import Config, load_config
+from companion.core import (
+    CAUSE_CODES,
+    FILTER_RESET,
+    CompanionCore,
+    EstimatorOptions,
+    GyroSource,
+    HoldCause,
+    StepOutput,
+    StepParams,
+    TiltFilter,
+    align_gyro_columns,
+    estimate_frames,
+    gate_frames,
+    latest_before,
+    repeat_mask,
+    run_control,
+)
+from companion.errors import RecordingError
+from companion.inbound import INT16_CLIP
+from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FlowColumns, Profile, detect_profile, flow_columns
+from companion.recording import MessageTable, Recording, load_recording
+
+COMPANION_COMPONENT = 191
+GUIDED_NOGPS = 20  # ArduCopter custom_mode
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+MAV_AUTOPILOT_INVALID = 8
+MAV_MODE_FLAG_SAFETY_ARMED = 128
+NOT_VEHICLE_TYPES = (6, 18)  # MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER
+DOWNWARD = 25  # MAV_SENSOR_ROTATION_PITCH_270
+BODY_FRAMES = (8, 9, 12)
+LOCAL_NED = 1
+#: truth is interpolated only between LOCAL_POSITION_NED samples at most this far apart (s)
+TRUTH_MAX_GAP_S = 0.25
+#: a progress bar for writing the CSV above this many rows
+PROGRESS_MIN_FRAMES = 100_000
+
+#: the CSV's columns, in order (truth and recorded columns only when the recording has them)
+CSV_COLUMNS = (
+    "t_s", "vx_m_s", "vy_m_s", "roll_cmd_rad", "pitch_cmd_rad", "frame_time_s", "dt_s", "vx_set_m_s",
+    "vy_set_m_s", "hold_cause", "engaged", "vx_raw_m_s", "vy_raw_m_s", "scene_rate_x_rad_s",
+    "scene_rate_y_rad_s", "flow_x_counts", "flow_y_counts", "quality", "gyro_x_rad_s", "gyro_y_rad_s",
+    "range_m", "truth_vx_m_s", "truth_vy_m_s", "rec_roll_cmd_rad", "rec_pitch_cmd_rad", "rec_vx_m_s",
+    "rec_vy_m_s")
+_OPTIONAL = ("truth_vx_m_s", "truth_vy_m_s", "rec_roll_cmd_rad", "rec_pitch_cmd_rad", "rec_vx_m_s", "rec_vy_m_s")
+_TIME_COLUMNS = ("t_s", "frame_time_s")
+
+
+@dataclass
+class ReplayResult:
+    """Per-frame columns (``CSV_COLUMNS``; ``hold_cause`` holds ``HoldCause`` names, "" = none)
+    and what the replay had to say about the recording (one line each)."""
+
+    recording: str
+    profile: Profile
+    gyro_source: GyroSource
+    columns: dict[str, np.ndarray]
+    notes: list[str] = field(default_factory=list)
+    n_repeats: int = 0
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.columns[key]
+
+    def __len__(self) -> int:
+        return len(self.columns["t_s"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Selecting the vehicle's messages
+
+
+def _vehicle_sysid(flow: MessageTable) -> int:
+    """The system that sent the flow: the first flow message's sender."""
+    return int(flow.sysid[0])
+
+
+def _from(rec: Recording, name: str, sysid: int) -> MessageTable | None:
+    if name not in rec:
+        return None
+    t = rec.tables[name]
+    if not np.all(t.sysid == sysid):
+        t = t.from_sender(sysid=sysid)
+    return t if len(t) else None
+
+
+def _gyro_columns(rec: Recording, sysid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]:
+    """Every gyro message of the vehicle in arrival order: (record, time_s, gx, gy rad/s, names)."""
+    parts = []
+    names = []
+    for name, scale in GYRO_MESSAGES.items():
+        t = _from(rec, name, sysid)
+        if t is None:
+            continue
+        names.append(name)
+        # SCALED_IMU carries time_boot_ms (ms), RAW_IMU and HIGHRES_IMU time_usec (µs)
+        time_s = t["time_boot_ms"] * 1e-3 if "time_usec" not in t.fields else t["time_usec"] * 1e-6
+        gx, gy = t["xgyro"] * scale, t["ygyro"] * scale
+        if name != "HIGHRES_IMU":  # an int16 mrad/s field at its limit has clipped: rate unknown
+            clipped = np.maximum(np.abs(t["xgyro"].astype(np.int64)), np.abs(t["ygyro"].astype(np.int64))) \
+                >= INT16_CLIP
+            gx, gy = np.where(clipped, np.nan, gx), np.where(clipped, np.nan, gy)
+        parts.append((t.record, np.asarray(time_s, float), gx, gy))
+    if not parts:
+        e = np.zeros(0)
+        return np.zeros(0, np.int64), e, e, e, ""
+    rec_ = np.concatenate([p[0] for p in parts])
+    order = np.argsort(rec_, kind="stable")
+    cols = [np.concatenate([np.asarray(p[i], float) for p in parts])[order] for i in (1, 2, 3)]
+    return rec_[order], cols[0], cols[1], cols[2], ", ".join(names)
+
+
+def _companion(t: MessageTable, fields: tuple[str, ...]) -> MessageTable:
+    """The rows of ``t`` sent by the companion (component 191), with only ``fields`` copied."""
+    mask = t.compid == COMPANION_COMPONENT
+    if mask.all():
+        return t
+    return MessageTable(t.name, t.t_s[mask], t.sysid[mask], t.compid[mask], t.record[mask],
+                        {k: t[k][mask] for k in fields})
+
+
+def vehicle_engaged(autopilot: Any, base_mode: Any, custom_mode: Any) -> Any:
+    """Whether a vehicle HEARTBEAT says the companion is in control: armed and, on ArduPilot,
+    in GUIDED_NOGPS (custom_mode 20). Elementwise."""
+    armed = (np.asarray(base_mode).astype(np.int64) & MAV_MODE_FLAG_SAFETY_ARMED) != 0
+    ardupilot = np.asarray(autopilot) == MAV_AUTOPILOT_ARDUPILOTMEGA
+    return armed & (~ardupilot | (np.asarray(custom_mode) == GUIDED_NOGPS))
+
+
+def _vehicle_heartbeats(rec: Recording, sysid: int) -> MessageTable | None:
+    hb = _from(rec, "HEARTBEAT", sysid)
+    if hb is None:
+        return None
+    own = (hb["autopilot"] != MAV_AUTOPILOT_INVALID) & ~np.isin(hb["type"], NOT_VEHICLE_TYPES)
+    hb = hb.select(own)
+    return hb if len(hb) else None
+
+
+def _ms_key(time_s: np.ndarray) -> np.ndarray:
+    """A frame time (s) as the whole milliseconds the companion puts in ``time_boot_ms``."""
+    with np.errstate(invalid="ignore"):
+        k = np.round(np.asarray(time_s, float) * 1e3)
+    return np.where(np.isfinite(k), k, -1).astype(np.int64)
+
+
+def _match_last(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Index of the last message whose key equals each query key, -1 if none."""
+    if len(keys) == 0:
+        return np.full(len(query), -1, dtype=np.int64)
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    pos = np.searchsorted(sk, query, side="right") - 1
+    ok = (pos >= 0) & (sk[np.maximum(pos, 0)] == query)
+    return np.where(ok, order[np.maximum(pos, 0)], -1)
+
+
+def frame_setpoints(rec: Recording, cfg: Config, sysid: int, flow_record: np.ndarray, flow_log_s: np.ndarray,
+                    frame_ms: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    """The velocity setpoint (vx, vy m/s, body axes) of each flow message, and where it came from.
+
+    Companion POSITION_TARGET_LOCAL_NED matched by ``time_boot_ms``, else the GCS's latest
+    SET_POSITION_TARGET_LOCAL_NED (target component 0 or 191; body frames 8, 9, 12, or
+    LOCAL_NED rotated by the vehicle's yaw when it arrived) no older than the setpoint timeout,
+    else 0. Non-finite values keep the previous setpoint (as ``CompanionCore.set_setpoint``)."""
+    n = len(flow_record)
+    sx = np.zeros(n)
+    sy = np.zeros(n)
+    src = []
+    if "SET_POSITION_TARGET_LOCAL_NED" in rec:
+        g = rec.tables["SET_POSITION_TARGET_LOCAL_NED"]
+        g = g.select(np.isin(g["target_component"], (0, COMPANION_COMPONENT)))
+        frame = g["coordinate_frame"]
+        gvx = np.asarray(g["vx"], float)
+        gvy = np.asarray(g["vy"], float)
+        local = frame == LOCAL_NED
+        if local.any():  # rotated by the yaw the vehicle reported last before the setpoint arrived
+            att = _from(rec, "ATTITUDE", sysid)
+            yaw = np.zeros(len(g))
+            if att is not None:
+                j = latest_before(att.record, g.record)
+                yaw_att = np.asarray(att["yaw"], float)
+                yaw = np.where(j >= 0, yaw_att[np.maximum(j, 0)], 0.0)
+                yaw = np.where(np.isfinite(yaw), yaw, 0.0)
+            c, s = np.cos(yaw), np.sin(yaw)
+            gvx, gvy = np.where(local, c * gvx + s * gvy, gvx), np.where(local, -s * gvx + c * gvy, gvy)
+        usable = np.isin(frame, BODY_FRAMES) | local
+        g_rec, g_t = g.record[usable], g.t_s[usable]
+        gvx, gvy = gvx[usable], gvy[usable]
+        if len(g_rec):
+            from companion.live import decayed_setpoint
+
+            j = latest_before(g_rec, flow_record)
+            age = flow_log_s - g_t[np.maximum(j, 0)]
+            timeout = cfg.companion.setpoint_timeout_s
+            for i in np.flatnonzero(j >= 0).tolist():  # the live loop's hold-then-ramp to 0
+                sx[i], sy[i] = decayed_setpoint((float(gvx[j[i]]), float(gvy[j[i]])), (0.0, 0.0), float(age[i]),
+                                                timeout)
+            src.append("the GCS's SET_POSITION_TARGET_LOCAL_NED")
+    if "POSITION_TARGET_LOCAL_NED" in rec:
+        pt = _companion(rec.tables["POSITION_TARGET_LOCAL_NED"], ("time_boot_ms", "vx", "vy"))
+        if len(pt):
+            j = _match_last(np.asarray(pt["time_boot_ms"], np.int64), frame_ms)
+            hit = j >= 0
+            sx = np.where(hit, np.asarray(pt["vx"], float)[np.maximum(j, 0)], sx)
+            sy = np.where(hit, np.asarray(pt["vy"], float)[np.maximum(j, 0)], sy)
+            src.insert(0, f"the companion's POSITION_TARGET_LOCAL_NED ({int(hit.sum())} frames)")
+    # a non-finite setpoint is ignored: the previous one stays (CompanionCore.set_setpoint)
+    bad = ~(np.isfinite(sx) & np.isfinite(sy))
+    if bad.any():
+        idx = np.maximum.accumulate(np.where(~bad, np.arange(n), -1))
+        sx = np.where(idx >= 0, sx[np.maximum(idx, 0)], 0.0)
+        sy = np.where(idx >= 0, sy[np.maximum(idx, 0)], 0.0)
+    vmax = cfg.companion.max_speed_m_s
+    sx = np.minimum(np.maximum(sx, -vmax), vmax)
+    sy = np.minimum(np.maximum(sy, -vmax), vmax)
+    return sx, sy, " then ".join(src) if src else "none in the recording (0)"
+
+
+# ---------------------------------------------------------------------------------------------
+# The replay
+
+
+@dataclass
+class _Frames:
+    """Everything the steps need, per flow message of the vehicle (before repeat removal)."""
+
+    fc: FlowColumns
+    record: np.ndarray
+    log_s: np.ndarray
+    setpoint_x: np.ndarray
+    setpoint_y: np.ndarray
+    engaged: np.ndarray
+    notes: list[str]
+
+
+def _prepare(rec: Recording, cfg: Config, profile: Profile) -> tuple[_Frames, int]:
+    name = FLOW_MESSAGE[profile]
+    if name not in rec:
+        other = [m for m in ("OPTICAL_FLOW", "OPTICAL_FLOW_RAD") if m != name and m in rec]
+        hint = f" (it has {other[0]}: try --profile {'px4' if other[0] == 'OPTICAL_FLOW_RAD' else 'ardupilot'})" \
+            if other else ""
+        raise RecordingError(f"{Path(rec.path).name}: no {name} messages in the recording, nothing to replay"
+                             f" with the {profile.value} profile{hint}")
+    flow_all = rec.tables[name]
+    sysid = _vehicle_sysid(flow_all)
+    flow = flow_all if np.all(flow_all.sysid == sysid) else flow_all.from_sender(sysid=sysid)
+    notes = []
+    if len(flow) < len(flow_all):
+        notes.append(f"ignored {len(flow_all) - len(flow)} {name} messages from systems other than {sysid}")
+    fc = flow_columns(flow, profile, cfg.flow_sensor.q_rad_per_count)
+    frame_ms = _ms_key(fc.time_s)
+    sx, sy, src = frame_setpoints(rec, cfg, sysid, flow.record, flow.t_s, frame_ms)
+    notes.append(f"setpoint from {src}")
+    hb = _vehicle_heartbeats(rec, sysid)
+    if hb is None:
+        engaged = np.ones(len(flow), dtype=bool)
+    else:
+        j = latest_before(hb.record, flow.record)
+        eng_hb = vehicle_engaged(hb["autopilot"], hb["base_mode"], hb["custom_mode"])
+        engaged = (j >= 0) & eng_hb[np.maximum(j, 0)]
+        notes.append(f"engaged (vehicle armed in GUIDED_NOGPS) for {int(engaged.sum())} of {len(engaged)} "
+                     "flow messages")
+    return _Frames(fc, flow.record, flow.t_s, sx, sy, engaged, notes), sysid
+
+
+def _payload(fc: FlowColumns) -> np.ndarray:
+    """Column form of ``CompanionCore.payload``."""
+    n = len(fc.time_s)
+
+    def col(x: Any) -> np.ndarray:
+        return np.broadcast_to(np.asarray(x, dtype=float), (n,))
+
+    return np.stack([col(fc.scene_x), col(fc.scene_y), col(fc.quality), col(fc.integration_s),
+                     col(fc.body_x_rad_s), col(fc.body_y_rad_s)], axis=1)
+
+
+def _take(x: Any, idx: np.ndarray, n: int) -> np.ndarray:
+    return np.broadcast_to(np.asarray(x, dtype=float), (n,))[idx]
+
+
+def _quat_to_roll_pitch(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(roll, pitch) rad of quaternions (n, 4) [w, x, y, z], as ``outbound.quaternion_to_euler``."""
+    w, x, y, z = (np.asarray(q[:, i], float) for i in range(4))
+    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+    return roll, pitch
+
+
+def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOptions | None = None) -> ReplayResult:
+    """Run the companion over ``rec`` (parameters ``cfg``, sensor ``profile``, estimator
+    ``options``; default: ``EstimatorOptions()``): one output row per flow frame, repeated and
+    out-of-order flow messages dropped as the live core drops them. Raises RecordingError when
+    the recording has no flow message of the profile."""
+    options = options if options is not None else EstimatorOptions.from_config(cfg)
+    gyro_source = options.resolved_gyro(profile)
+    p = StepParams.from_config(cfg)
+    fr, sysid = _prepare(rec, cfg, profile)
+    notes = list(fr.notes)
+    fc = fr.fc
+    n_msg = len(fr.record)
+    t_all = np.asarray(fc.time_s, float)
+
+    # repeated samples: the same payload again within the repeat window is not a new frame
+    rep = repeat_mask(t_all, _payload(fc), p.repeat_window_s)
+    keep = np.flatnonzero(~rep)
+    n = len(keep)
+    if rep.any():
+        notes.append(f"{int(rep.sum())} flow messages repeated the last sample (sent faster than the sensor "
+                     "updates) or came out of order: not stepped again")
+    time_s = t_all[keep]
+    record = fr.record[keep]
+    scene_x, scene_y = _take(fc.scene_x, keep, n_msg), _take(fc.scene_y, keep, n_msg)
+    quality = _take(fc.quality, keep, n_msg)
+    integration_s = _take(fc.integration_s, keep, n_msg)
+
+    # the gyro sample aligned with each frame
+    if gyro_source is GyroSource.FLOW:
+        gx, gy = _take(fc.body_x_rad_s, keep, n_msg), _take(fc.body_y_rad_s, keep, n_msg)
+        gyro_found = ~(np.isnan(gx) | np.isnan(gy))
+        if not gyro_found.any():
+            notes.append(f"the {profile.value} flow message carries no body rate: every frame holds "
+                         "(use --gyro imu)")
+    else:
+        g_rec, g_t, g_x, g_y, g_names = _gyro_columns(rec, sysid)
+        if len(g_rec) == 0:
+            notes.append("no gyro (RAW_IMU, SCALED_IMU or HIGHRES_IMU) from the vehicle: every frame holds")
+        else:
+            notes.append(f"gyro from {g_names}")
+        j = align_gyro_columns(g_rec, g_t, record, time_s, p.max_gyro_skew_s)
+        gyro_found = j >= 0
+        gx = np.where(gyro_found, g_x[np.maximum(j, 0)] if len(g_x) else np.nan, np.nan)
+        gy = np.where(gyro_found, g_y[np.maximum(j, 0)] if len(g_y) else np.nan, np.nan)
+
+    # the latest downward range reading received before each frame
+    ds = _from(rec, "DISTANCE_SENSOR", sysid)
+    if ds is not None:
+        ds = ds.select(ds["orientation"] == DOWNWARD)
+    if ds is None or len(ds) == 0:
+        notes.append("no downward DISTANCE_SENSOR (orientation 25) from the vehicle: every frame holds")
+        range_found = np.zeros(n, dtype=bool)
+        range_t = range_m = np.full(n, np.nan)
+    else:
+        cur = ds["current_distance"]
+        r_all = np.where((ds["min_distance"] <= cur) & (cur <= ds["max_distance"]), cur * 0.01, np.nan)
+        j = latest_before(ds.record, record)
+        range_found = j >= 0
+        range_t = np.where(range_found, ds["time_boot_ms"][np.maximum(j, 0)] * 1e-3, np.nan)
+        range_m = np.where(range_found, r_all[np.maximum(j, 0)], np.nan)
+
+    # the attitude for the optional tilt filter
+    roll_a = pitch_a = np.full(n, np.nan)
+    tilt: TiltFilter | None = options.tilt_filter
+    if tilt is not None:
+        att = _from(rec, "ATTITUDE", sysid)
+        if att is None:
+            notes.append("no ATTITUDE from the vehicle: the tilt filter passes eq. 15 through")
+        else:
+            j = latest_before(att.record, record)
+            t_a = np.where(j >= 0, att["time_boot_ms"][np.maximum(j, 0)] * 1e-3, np.nan)
+            with np.errstate(invalid="ignore"):
+                fresh = (j >= 0) & ((time_s - t_a) <= tilt.max_attitude_age_s)
+            roll_a = np.where(fresh, np.asarray(att["roll"], float)[np.maximum(j, 0)], np.nan)
+            pitch_a = np.where(fresh, np.asarray(att["pitch"], float)[np.maximum(j, 0)], np.nan)
+
+    # gating and eq. 15 over all frames at once
+    finite_t = np.where(np.isfinite(time_s), time_s, np.nan)
+    idx = np.where(np.isfinite(time_s), np.arange(n), -1)
+    last_finite = np.maximum.accumulate(idx) if n else idx
+    prev_time = np.full(n, np.nan)
+    if n > 1:
+        prev_time[1:] = np.where(last_finite[:-1] >= 0, finite_t[np.maximum(last_finite[:-1], 0)], np.nan)
+    codes = gate_frames(time_s, scene_x, scene_y, quality, gyro_found, gx, gy, range_found, range_t, range_m, p=p)
+    codes, vx, vy, dt, rate_x, rate_y = estimate_frames(codes, time_s, prev_time, scene_x, scene_y,
+                                                        fc.increment, integration_s, gx, gy, range_m, p=p)
+    engaged = fr.engaged[keep]
+    sx, sy = fr.setpoint_x[keep], fr.setpoint_y[keep]
+
+    # the sequential part: the live loop's run_control over all frames
+    _, _, vx_used, vy_used, roll_cmd, pitch_cmd = run_control((0.0, 0.0), FILTER_RESET, codes == 0, engaged, vx, vy,
+                                                              roll_a, pitch_a, sx, sy, dt, p=p, tilt=tilt)
+    cause = codes.astype(np.int64)
+    cause = np.where((cause == 0) & ~engaged, CAUSE_CODES.index(HoldCause.DISENGAGED), cause)
+    names = np.array([c.name if c is not HoldCause.NONE else "" for c in CAUSE_CODES], dtype=object)
+    held = np.bincount(cause, minlength=len(CAUSE_CODES))
+    summary = ", ".join(f"{CAUSE_CODES[i].name.lower()} {int(k)}" for i, k in enumerate(held) if i and k)
+    if summary:
+        notes.append(f"held frames by cause: {summary}")
+
+    cols: dict[str, np.ndarray] = {
+        "t_s": fr.log_s[keep] - rec.t0_s,
+        "vx_m_s": vx_used, "vy_m_s": vy_used, "roll_cmd_rad": roll_cmd, "pitch_cmd_rad": pitch_cmd,
+        "frame_time_s": time_s, "dt_s": dt, "vx_set_m_s": sx, "vy_set_m_s": sy,
+        "hold_cause": names[cause], "engaged": engaged.astype(np.int8),
+        "vx_raw_m_s": vx, "vy_raw_m_s": vy, "scene_rate_x_rad_s": rate_x, "scene_rate_y_rad_s": rate_y,
+        "flow_x_counts": _take(fc.counts_x, keep, n_msg), "flow_y_counts": _take(fc.counts_y, keep, n_msg),
+        "quality": quality, "gyro_x_rad_s": gx, "gyro_y_rad_s": gy, "range_m": range_m,
+    }
+    cols.update(_truth(rec, sysid, time_s))
+    cols.update(_recorded(rec, time_s))
+    return ReplayResult(rec.path, profile, gyro_source, cols, notes, int(rep.sum()))
+
+
+def _truth(rec: Recording, sysid: int, time_s: np.ndarray) -> dict[str, np.ndarray]:
+    """LOCAL_POSITION_NED velocity at each frame time, in body axes by the ATTITUDE yaw."""
+    lp = _from(rec, "LOCAL_POSITION_NED", sysid)
+    if lp is None:
+        return {}
+    t = np.asarray(lp["time_boot_ms"], float) * 1e-3
+    order = np.argsort(t, kind="stable")
+    t = t[order]
+    vn = np.asarray(lp["vx"], float)[order]
+    ve = np.asarray(lp["vy"], float)[order]
+    # valid between two samples at most TRUTH_MAX_GAP_S apart (or on a sample)
+    hi = np.clip(np.searchsorted(t, time_s, side="left"), 0, len(t) - 1)
+    lo = np.clip(np.searchsorted(t, time_s, side="right") - 1, 0, len(t) - 1)
+    with np.errstate(invalid="ignore"):
+        ok = (time_s >= t[0]) & (time_s <= t[-1]) & (t[hi] - t[lo] <= TRUTH_MAX_GAP_S)
+    vn_f = np.where(ok, np.interp(time_s, t, vn), np.nan)
+    ve_f = np.where(ok, np.interp(time_s, t, ve), np.nan)
+    att = _from(rec, "ATTITUDE", sysid)
+    yaw = np.zeros(len(time_s))
+    if att is not None:
+        ta = np.asarray(att["time_boot_ms"], float) * 1e-3
+        o = np.argsort(ta, kind="stable")
+        yaw = np.interp(time_s, ta[o], np.unwrap(np.asarray(att["yaw"], float)[o]))
+    c, s = np.cos(yaw), np.sin(yaw)
+    return {"truth_vx_m_s": c * vn_f + s * ve_f, "truth_vy_m_s": -s * vn_f + c * ve_f}
+
+
+def _recorded(rec: Recording, time_s: np.ndarray) -> dict[str, np.ndarray]:
+    """The companion's own recorded command and estimate for each frame (NaN where none)."""
+    out: dict[str, np.ndarray] = {}
+    ms = _ms_key(time_s)
+    if "SET_ATTITUDE_TARGET" in rec:
+        sat = _companion(rec.tables["SET_ATTITUDE_TARGET"], ("time_boot_ms", "q"))
+        if len(sat):
+            j = _match_last(np.asarray(sat["time_boot_ms"], np.int64), ms)
+            roll, pitch = _quat_to_roll_pitch(np.asarray(sat["q"], float))
+            out["rec_roll_cmd_rad"] = np.where(j >= 0, roll[np.maximum(j, 0)], np.nan)
+            out["rec_pitch_cmd_rad"] = np.where(j >= 0, pitch[np.maximum(j, 0)], np.nan)
+    if "VISION_SPEED_ESTIMATE" in rec:
+        vse = _companion(rec.tables["VISION_SPEED_ESTIMATE"], ("usec", "x", "y"))
+        if len(vse):
+            j = _match_last(np.round(np.asarray(vse["usec"], float) * 1e-3).astype(np.int64), ms)
+            out["rec_vx_m_s"] = np.where(j >= 0, np.asarray(vse["x"], float)[np.maximum(j, 0)], np.nan)
+            out["rec_vy_m_s"] = np.where(j >= 0, np.asarray(vse["y"], float)[np.maximum(j, 0)], np.nan)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The reference: the live path, message by message
+
+
+def replay_live(path: str | Path, cfg: Config, profile: Profile, options: EstimatorOptions | None = None
+                ) -> list[StepOutput]:
+    """Feed a .tlog message by message (pymavlink) to the live ``MessageRouter`` and
+    ``CompanionCore``, with the setpoint and engagement of each flow message taken from the
+    recording as ``replay`` takes them. Returns the step output of every new frame (repeats
+    dropped). Slow (pymavlink); it is the yardstick ``replay`` is tested against."""
+    from pymavlink import mavutil
+
+    from companion.inbound import MessageRouter
+
+    rec = load_recording(path)
+    fr, sysid = _prepare(rec, cfg, profile)
+    core = CompanionCore(cfg, profile, options)
+    core.set_engaged(_vehicle_heartbeats(rec, sysid) is None)  # with heartbeats: not before the first says so
+    router = MessageRouter(core, profile, vehicle_sysid=sysid)
+    flow_name = FLOW_MESSAGE[profile]
+    conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    outputs: list[StepOutput] = []
+    k = 0
+    try:
+        for msg in _messages(conn):
+            mtype = msg.get_type()
+            src = msg.get_srcSystem()
+            if mtype == "HEARTBEAT" and src == sysid and msg.autopilot != MAV_AUTOPILOT_INVALID \
+                    and msg.type not in NOT_VEHICLE_TYPES:
+                core.set_engaged(bool(vehicle_engaged(msg.autopilot, msg.base_mode, msg.custom_mode)))
+                continue
+            if mtype in ("SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL"):
+                continue  # the per-frame setpoint below stands for them
+            if mtype == flow_name and src == sysid:
+                if k >= len(fr.setpoint_x):
+                    raise RecordingError("pymavlink and the column reader disagree on the flow messages")
+                core.set_setpoint(float(fr.setpoint_x[k]), float(fr.setpoint_y[k]))
+                k += 1
+            out = router.handle(msg)
+            if out is not None and not out.repeat:
+                outputs.append(out)
+    finally:
+        conn.close()
+    return outputs
+
+
+def _messages(conn: Any) -> Iterator[Any]:
+    while True:
+        msg = conn.recv_match(blocking=False)
+        if msg is None:
+            return
+        if msg.get_type() != "BAD_DATA":
+            yield msg
+
+
+# ---------------------------------------------------------------------------------------------
+# Output
+
+
+def write_csv(result: ReplayResult, path: str | Path, *, progress: bool = False) -> list[str]:
+    """Write the per-frame CSV (``CSV_COLUMNS`` present in the result; 9 significant digits, 12
+    for times; NaN as ``nan``). ``progress``: a bar on stderr for long results. Returns the
+    columns written."""
+    names = [c for c in CSV_COLUMNS if c in result.columns]
+    names += [c for c in result.columns if c not in names]
+    fmts = []
+    values = []
+    for c in names:
+        col = result.columns[c]
+        if col.dtype == object:
+            fmts.append("%s")
+            values.append(col.tolist())
+        elif np.issubdtype(col.dtype, np.integer):
+            fmts.append("%d")
+            values.append(col.tolist())
+        else:
+            fmts.append("%.12g" if c in _TIME_COLUMNS else "%.9g")
+            values.append(col.tolist())
+    row = ",".join(fmts)
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    bar = None
+    if progress and len(result) > PROGRESS_MIN_FRAMES:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(result), desc=f"writing {p.name}", unit="row", file=sys.stderr, leave=False)
+    try:
+        with open(p, "w") as fh:
+            fh.write(",".join(names) + "\n")
+            chunk = 20_000
+            for a in range(0, len(result), chunk):
+                part = [v[a:a + chunk] for v in values]
+                fh.write("".join(row % r + "\n" for r in zip(*part, strict=True)))
+                if bar is not None:
+                    bar.update(len(part[0]))
+    finally:
+        if bar is not None:
+            bar.close()
+    return names
+
+
+def _options(args: argparse.Namespace, cfg: Config) -> EstimatorOptions:
+    """The config's ``[companion]`` choices, overridden by ``--gyro`` / ``--filter`` when given."""
+    gyro = GyroSource(getattr(args, "gyro", None) or cfg.companion.gyro_source)
+    filt = getattr(args, "filter", None) or cfg.companion.velocity_filter
+    return EstimatorOptions(gyro, TiltFilter() if filt == "tilt" else None)
+
+
+def _load(path: str, sensor_config: str | None, progress: bool) -> Recording:
+    if sensor_config is None and Path(path).suffix.lower() not in (".csv", ".bin", ".ulg") and Path(path).is_file():
+        from companion.tlog_reader import read_tlog
+
+        return read_tlog(path, progress=progress)
+    return load_recording(path, sensor_config=sensor_config)
+
+
+def run_cli(args: argparse.Namespace) -> int:
+    """``python -m companion replay``: CSV (and plot) of the companion over a recording."""
+    cfg = load_config(args.config)
+    rec = _load(args.recording, getattr(args, "sensor_config", None), progress=sys.stderr.isatty())
+    if args.profile:
+        profile = Profile(args.profile)
+        why = "given"
+    else:
+        detected, why = detect_profile(rec)
+        profile = Profile(detected)
+    result = replay(rec, cfg, profile, _options(args, cfg))
+    names = write_csv(result, args.csv, progress=sys.stderr.isatty())
+    err = sys.stderr
+    print(f"profile {profile.value} ({why}); gyro {result.gyro_source.value}"
+          f"{'; tilt filter' if _options(args, cfg).tilt_filter else ''}", file=err)
+    for line in rec.notes + result.notes:
+        print(line, file=err)
+    print(f"{len(result)} frames -> {args.csv} ({len(names)} columns)", file=err)
+    if "truth_vx_m_s" in result.columns:
+        e = _rms_vs_truth(result)
+        if e is not None:
+            print(f"estimate - LOCAL_POSITION_NED (body axes), RMS over the engaged frames: "
+                  f"x {e[0]:.4f} m/s, y {e[1]:.4f} m/s", file=err)
+    if args.plot:
+        from companion.replay_plot import plot_replay
+
+        plot_replay(result, args.plot)
+        print(f"plot -> {args.plot}", file=err)
+    return 0
+
+
+def _rms_vs_truth(result: ReplayResult) -> tuple[float, float] | None:
+    c = result.columns
+    ok = (c["engaged"] == 1) & np.isfinite(c["vx_m_s"]) & np.isfinite(c["truth_vx_m_s"])
+    if not ok.any():
+        return None
+    return (float(np.sqrt(np.mean((c["vx_m_s"][ok] - c["truth_vx_m_s"][ok]) ** 2))),
+            float(np.sqrt(np.mean((c["vy_m_s"][ok] - c["truth_vy_m_s"][ok]) ** 2))))
+
