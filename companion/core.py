@@ -290,7 +290,16 @@ def estimate_frames(codes: np.ndarray, time_s: np.ndarray, prev_time_s: np.ndarr
 # 2. The live alignment rules over a recording's columns
 
 
-def repeat_mask(time_s: np.ndarray, payload: np.ndarray, window_s: float) -> np.ndarray:
+def repeat_window(integration_s: np.ndarray, nominal_window_s: float) -> np.ndarray:
+    """The repeat window of each frame: ``REPEAT_WINDOW_FRAMES`` of the reading's own span when
+    the message states one, else the nominal window (as ``CompanionCore._is_repeat``)."""
+    integ = np.asarray(integration_s, dtype=float)
+    with np.errstate(invalid="ignore"):
+        own = np.isfinite(integ) & (integ > 0.0)
+    return np.where(own, REPEAT_WINDOW_FRAMES * np.where(own, integ, 0.0), nominal_window_s)
+
+
+def repeat_mask(time_s: np.ndarray, payload: np.ndarray, window_s: float | np.ndarray) -> np.ndarray:
     """Which flow messages (in arrival order) ``CompanionCore.on_flow`` does not step: the same
     sample again (payload (n, k) equal to the last frame's, NaN equal to NaN, and ``0 <= t -
     t_last < window_s``) or a time not after the last frame's (``-FRAME_REBOOT_S <= t - t_last <=
@@ -299,6 +308,7 @@ def repeat_mask(time_s: np.ndarray, payload: np.ndarray, window_s: float) -> np.
     rep = np.zeros(n, dtype=bool)
     if n < 2:
         return rep
+    window_s = np.broadcast_to(np.asarray(window_s, dtype=float), (n,))
     # as long as nothing is skipped, the last frame is the previous message with a finite time
     finite = np.isfinite(time_s)
     idx = np.maximum.accumulate(np.where(finite, np.arange(n), -1))
@@ -318,11 +328,12 @@ def repeat_mask(time_s: np.ndarray, payload: np.ndarray, window_s: float) -> np.
     rows = payload.tolist()
     last_t = t_last[k]
     last_row = rows[k - 1]
+    windows = window_s.tolist()
     for i in range(k, n):
         row = rows[i]
         d_i = t[i] - last_t
-        if (0.0 <= d_i < window_s and all(x == y or (x != x and y != y) for x, y in zip(row, last_row, strict=True))) \
-                or -FRAME_REBOOT_S <= d_i <= 0.0:
+        same_row = all(x == y or (x != x and y != y) for x, y in zip(row, last_row, strict=True))
+        if (0.0 <= d_i < windows[i] and same_row) or -FRAME_REBOOT_S <= d_i <= 0.0:
             rep[i] = True
             continue
         last_row = row
@@ -608,7 +619,10 @@ class CompanionCore:
         dt = f.time_s - self._last_used_time_s
         if -FRAME_REBOOT_S <= dt <= 0.0:
             return True
-        if not 0.0 <= dt < self.params.repeat_window_s:
+        window = self.params.repeat_window_s
+        if math.isfinite(f.integration_s) and f.integration_s > 0.0:  # the reading states its own span
+            window = REPEAT_WINDOW_FRAMES * f.integration_s
+        if not 0.0 <= dt < window:
             return False
         return all(a == b or (a != a and b != b) for a, b in zip(payload, prev, strict=True))
 

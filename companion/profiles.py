@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.errors import RecordingError
 from companion.recording import Recording
 
 
@@ -83,7 +84,7 @@ def flow_columns(fields: Any, profile: Profile, q_rad_per_count: float) -> FlowC
             scene_x=cx * q_rad_per_count,
             scene_y=cy * q_rad_per_count,
             increment=True,
-            integration_s=np.full_like(cx, nan),
+            integration_s=_optional_integration_s(f, cx),
             quality=np.asarray(f["quality"]),
             counts_x=cx,
             counts_y=cy,
@@ -122,6 +123,17 @@ def flow_columns(fields: Any, profile: Profile, q_rad_per_count: float) -> FlowC
         body_x_rad_s=body_x,
         body_y_rad_s=body_y,
     )
+
+
+def _optional_integration_s(f: Any, like: np.ndarray) -> np.ndarray:
+    """``integration_time_us`` in s where the source states it (MAVLink OPTICAL_FLOW has no such
+    field; importers such as the CSV one add it when a reading covers less than the row spacing),
+    else NaN: the frame spacing is used."""
+    try:
+        us = f["integration_time_us"]
+    except (KeyError, AttributeError, RecordingError):  # the field is absent (dict, message, table)
+        return np.full_like(like, np.nan)
+    return np.broadcast_to(np.asarray(us, dtype=float) * 1e-6, np.shape(like)).copy()
 
 
 class FieldView:

@@ -65,6 +65,7 @@ from companion.core import (
     gate_frames,
     latest_before,
     repeat_mask,
+    repeat_window,
     run_control,
 )
 from companion.errors import RecordingError
@@ -351,7 +352,7 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
     t_all = np.asarray(fc.time_s, float)
 
     # repeated samples: the same payload again within the repeat window is not a new frame
-    rep = repeat_mask(t_all, _payload(fc), p.repeat_window_s)
+    rep = repeat_mask(t_all, _payload(fc), repeat_window(fc.integration_s, p.repeat_window_s))
     keep = np.flatnonzero(~rep)
     n = len(keep)
     if rep.any():

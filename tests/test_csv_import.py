@@ -292,3 +292,29 @@ def test_a_copy_of_the_map_elsewhere_still_works(tmp_path):
     shutil.copy(MAP, tmp_path / "copy.toml")
     rec = read_csv(XTEST, tmp_path / "copy.toml")
     assert len(rec.tables["RAW_IMU"]) == 1834
+
+
+
+def test_replay_of_a_csv_uses_each_readings_own_10ms_span_and_keeps_every_row(tmp_path):
+    """Rows are ~11 ms apart but each holds one 10 ms PMW3901 reading (data README): eq. 15 divides
+    the counts by 10 ms, and identical consecutive readings 11 ms apart are distinct readings."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+
+    repo = Path(__file__).resolve().parent.parent
+    src = repo.parent / "shared/data/real/stampfly/flow_test_x_axis_01.csv"
+    out = tmp_path / "x.csv"
+    r = subprocess.run([sys.executable, "-m", "companion", "replay", str(src), "--sensor-config",
+                        str(repo / "configs/sensors/stampfly.toml"), "--csv", str(out)],
+                       capture_output=True, text=True, timeout=120, cwd=repo)
+    assert r.returncode == 0, r.stderr
+    d = np.genfromtxt(out, delimiter=",", names=True, dtype=None, encoding=None)
+    with src.open() as fh:
+        assert len(d) == sum(1 for _ in fh) - 1  # one output row per CSV row
+    q = 0.09 / 57.3
+    ok = np.isfinite(d["scene_rate_x_rad_s"])
+    assert ok.sum() > 1000
+    np.testing.assert_allclose(d["scene_rate_x_rad_s"][ok], d["flow_x_counts"][ok] * q / 0.010, rtol=1e-8, atol=1e-12)  # the CSV keeps 9 digits
