@@ -1,0 +1,306 @@
+"""flowhold's benchmarks, all measured in one run, printed as one table (``make bench``).
+
+    .venv/bin/python benchmarks/run.py [--quick] [--skip SECTION ...] [--json OUT] [--workdir DIR]
+
+Sections (each against a baseline measured in the same run):
+
+- ``sim``: simulator speed in simulated seconds per wall second: the fine-step reference
+  (RK4 at 1 ms closed by ``CompanionCore``; also ``scenarios.fly`` through MAVLink), the fast
+  engine on one 150 s flight, and a batch of 1000 flights of 150 s (``bench_sim``).
+  Targets: one flight >= 1000 x real time; the batch in under 60 s.
+- ``latency``: the companion's step on UDP loopback, from a flow frame leaving the fake vehicle
+  to its SET_ATTITUDE_TARGET arriving, p50 / p99 over 2000 frames at 50 Hz, under the default
+  scheduler and under SCHED_FIFO (``bench_latency``). Target: p99 < 2 ms.
+- ``reader``: ``companion.tlog_reader.read_tlog`` against pymavlink's message loop on a
+  synthetic 60 min recording (``bench_reader``, from the recordings issue).
+- ``replay``: ``companion.replay.replay`` (columns) against ``replay_live`` (pymavlink message by
+  message through the live core) on a closed-loop recording.
+- ``diagnose``: ``companion.diagnose`` on closed-loop recordings of 150 s, 10 min and 60 min,
+  and the exponent of its cost against the length. Target: no worse than linear.
+
+The closed-loop recordings are written once by ``bench_sim.write_flight_tlog`` into
+``--workdir`` (default ``out/bench``) and reused. A section whose code is not in the tree (yet)
+prints "not available". ``--quick`` shortens everything (a smoke run, not the numbers to quote).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+HERE = Path(__file__).resolve().parent
+for p in (str(ROOT), str(HERE)):
+    if p not in sys.path:
+        sys.path.insert(0, p)
+
+SECTIONS = ("sim", "latency", "reader", "replay", "diagnose")
+RECORDING_VERSION = 1  # bump when write_flight_tlog changes what it writes
+
+
+@dataclass
+class Table:
+    """Rows of (section, measurement, result, versus baseline, target/verdict)."""
+
+    rows: list[tuple[str, str, str, str, str]] = field(default_factory=list)
+    numbers: dict[str, Any] = field(default_factory=dict)
+
+    def add(self, section: str, what: str, result: str, versus: str = "", target: str = "") -> None:
+        self.rows.append((section, what, result, versus, target))
+        print(f"  {what}: {result} {versus} {target}".rstrip(), file=sys.stderr, flush=True)
+
+    def render(self) -> str:
+        head = ("section", "measurement", "result", "vs baseline", "target")
+        widths = [max(len(r[i]) for r in [head, *self.rows]) for i in range(5)]
+        line = "  ".join("-" * w for w in widths)
+        out = ["  ".join(h.ljust(w) for h, w in zip(head, widths, strict=True)), line]
+        last = None
+        for r in self.rows:
+            cells = list(r)
+            if r[0] == last:
+                cells[0] = ""
+            last = r[0]
+            out.append("  ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)).rstrip())
+        return "\n".join(out)
+
+
+def _verdict(ok: bool) -> str:
+    return "met" if ok else "NOT MET"
+
+
+def _fmt_speed(x: float) -> str:
+    return f"{x:,.0f} sim-s/s" if x >= 100 else f"{x:,.2f} sim-s/s"
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def section_sim(t: Table, quick: bool) -> None:
+    import bench_sim
+
+    dur = 30.0 if quick else 150.0
+    n_batch = 100 if quick else 1000
+    workers = os.cpu_count() or 1
+    ref = bench_sim.measure_reference(10.0 if quick else 30.0)
+    t.numbers["sim_reference"] = ref
+    t.add("simulator", "reference: RK4 1 ms + CompanionCore (baseline)", _fmt_speed(ref["speed"]), "1 x",
+          f"{ref['speed']:.1f} x real time")
+    fly = bench_sim.measure_fly(5.0 if quick else 15.0)
+    t.numbers["sim_fly"] = fly
+    t.add("simulator", "scenarios.fly: the reference through MAVLink", _fmt_speed(fly["speed"]),
+          f"{fly['speed'] / ref['speed']:.2f} x")
+    single = bench_sim.measure_fast_single(dur)
+    t.numbers["sim_fast_single"] = single
+    t.add("simulator", f"fast engine, one {dur:g} s flight (array schedules)", _fmt_speed(single["speed"]),
+          f"{single['speed'] / ref['speed']:,.0f} x",
+          f">= 1000 x real time: {_verdict(single['speed'] >= 1000)} ({single['speed']:,.0f} x, "
+          f"{single['wall_s'] * 1e3:.0f} ms)")
+    funcs = bench_sim.measure_fast_single(dur, repeats=3, functions=True)
+    t.numbers["sim_fast_single_functions"] = funcs
+    t.add("simulator", f"fast engine, one {dur:g} s flight (schedules as Python functions)",
+          _fmt_speed(funcs["speed"]), f"{funcs['speed'] / ref['speed']:,.0f} x",
+          f"{funcs['wall_s'] * 1e3:.0f} ms; the functions run at 7 points per frame")
+    interp = bench_sim.measure_fast_interpreted(2.0 if quick else 4.0)
+    t.numbers["sim_fast_interpreted"] = interp
+    t.add("simulator", "fast engine, frame loop interpreted (no numba)", _fmt_speed(interp["speed"]),
+          f"{interp['speed'] / ref['speed']:,.1f} x", f"numba: {single['speed'] / interp['speed']:,.0f} x faster")
+    for w in sorted({1, workers}):
+        b = bench_sim.measure_fast_batch(n_batch, dur, w)
+        t.numbers[f"sim_fast_batch_{w}"] = b
+        t.add("simulator", f"fast engine, batch {n_batch} x {dur:g} s, {w} process{'es' if w > 1 else ''}",
+              _fmt_speed(b["speed"]), f"{b['speed'] / ref['speed']:,.0f} x",
+              f"1000 x 150 s < 60 s: {_verdict(b['wall_s'] * (1000 * 150) / (n_batch * dur) < 60)} "
+              f"({b['wall_s']:.1f} s)")
+    c = bench_sim.measure_compile()
+    t.numbers["sim_first_use"] = c
+    t.add("simulator", "fast engine, first use in a fresh process", f"{c['first_flight_s']:.1f} s",
+          "", f"import {c['import_s']:.1f} s; compiles once (~30 s) after fastsim.py changes")
+
+
+def section_latency(t: Table, quick: bool) -> None:
+    import bench_latency
+
+    frames = 500 if quick else 2000
+    modes = (False, True) if bench_latency.realtime_available() else (False,)
+    for target in ("live", "harness"):
+        if target == "live" and not _has_module("companion.live"):
+            t.add("latency", "python -m companion run", "not available")
+            continue
+        for rt in modes:
+            r = bench_latency.measure_latency(target, frames, 50.0, realtime=rt)
+            t.numbers[f"latency_{target}_{'fifo' if rt else 'default'}"] = r
+            label = ("python -m companion run" if target == "live" else "harness: MessageRouter + outbound")
+            t.add("latency", f"{label}, {'SCHED_FIFO' if rt else 'default scheduler'}",
+                  f"p50 {r['p50_ms']:.2f} ms, p99 {r['p99_ms']:.2f} ms", f"max {r['max_ms']:.2f} ms",
+                  f"p99 < 2 ms: {_verdict(r['p99_ms'] < 2.0)} ({frames} frames, {r['lost']} lost, "
+                  f"load avg {r['load_avg_1min']:.1f})")
+    p = bench_latency.profile_step(1000 if quick else 3000)
+    t.numbers["latency_in_process"] = {k: v for k, v in p.items() if k != "profile"}
+    t.add("latency", "in-process cost per frame (4 messages in, 3 out)",
+          f"decode {p['parse_us']:.0f} us, step {p['step_us']:.0f} us, encode {p['encode_us']:.0f} us")
+
+
+def section_reader(t: Table, quick: bool, workdir: Path) -> None:
+    try:
+        import bench_reader
+    except ImportError:
+        t.add("reader", "read_tlog vs pymavlink", "not available")
+        return
+    minutes = 10.0 if quick else 60.0
+    path = workdir / f"synthetic_{minutes:g}min.tlog"
+    if not path.exists():
+        bench_reader.build_recording(path, minutes)
+    m = bench_reader.measure_reader(path)
+    t.numbers["reader"] = m
+    t.add("reader", f"read_tlog, synthetic {minutes:g} min ({m['messages']:,} messages)",
+          f"{m['reader_msgs_per_s']:,.0f} msg/s", f"{m['speedup']:.0f} x pymavlink",
+          f"pymavlink {m['pymavlink_msgs_per_s']:,.0f} msg/s; whole file {m['reader_s']:.2f} s vs "
+          f"~{m['pymavlink_full_s_est']:.0f} s")
+
+
+def _flight(workdir: Path, duration_s: float) -> Path:
+    import bench_sim
+
+    path = workdir / f"flight_{duration_s:g}s_v{RECORDING_VERSION}.tlog"
+    if not path.exists():
+        tmp = path.with_suffix(".partial")
+        r = bench_sim.write_flight_tlog(tmp, duration_s, seed=3)
+        tmp.rename(path)
+        print(f"  wrote {path} ({r['messages']:,} messages) in {r['build_s']:.0f} s", file=sys.stderr)
+    return path
+
+
+def section_replay(t: Table, quick: bool, workdir: Path) -> None:
+    if not _has_module("companion.replay"):
+        t.add("replay", "replay vs pymavlink", "not available")
+        return
+    from companion.config import load_config
+    from companion.profiles import Profile
+    from companion.recording import load_recording
+    from companion.replay import replay, replay_live
+
+    cfg = load_config()
+    dur = 60.0 if quick else 600.0
+    path = _flight(workdir, dur)
+    t0 = time.perf_counter()
+    res = replay(load_recording(path), cfg, Profile.PAPER)
+    t_cols = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    live = replay_live(path, cfg, Profile.PAPER)
+    t_live = time.perf_counter() - t0
+    frames = len(live)
+    t.numbers["replay"] = {"duration_s": dur, "frames": frames, "replay_s": t_cols, "replay_live_s": t_live}
+    del res
+    t.add("replay", f"companion replay, {dur / 60:g} min closed-loop flight ({frames:,} frames)",
+          f"{t_cols:.2f} s", f"{t_live / t_cols:.0f} x pymavlink",
+          f"replay_live (pymavlink, message by message) {t_live:.1f} s")
+
+
+def section_diagnose(t: Table, quick: bool, workdir: Path, timeout_s: float) -> None:
+    if not _has_module("companion.diagnose"):
+        t.add("diagnose", "diagnose vs recording length", "not available")
+        return
+    lengths = (150.0, 600.0) if quick else (150.0, 600.0, 3600.0)
+    probe = ("import json, sys, time\nt0 = time.perf_counter()\n"
+             "from companion.diagnose import diagnose_recording\nt1 = time.perf_counter()\n"
+             "d = diagnose_recording(sys.argv[1])\nt2 = time.perf_counter()\n"
+             "print(json.dumps({'import_s': t1 - t0, 'diagnose_s': t2 - t1}))\n")
+    times = []
+    for length in lengths:
+        path = _flight(workdir, length)
+        t0 = time.perf_counter()
+        try:
+            out = subprocess.run([sys.executable, "-c", probe, str(path)], capture_output=True, text=True, cwd=ROOT,
+                                 timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            t.add("diagnose", f"{length / 60:g} min recording", f"timeout after {timeout_s:.0f} s")
+            continue
+        wall = time.perf_counter() - t0
+        if out.returncode != 0:
+            t.add("diagnose", f"{length / 60:g} min recording", "failed", "",
+                  (out.stderr.strip().splitlines() or ["?"])[-1][:100])
+            continue
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        times.append((length, r["diagnose_s"]))
+        t.numbers[f"diagnose_{length:g}s"] = {**r, "wall_s": wall}
+        t.add("diagnose", f"{length / 60:g} min closed-loop recording", f"{r['diagnose_s']:.1f} s",
+              f"{r['diagnose_s'] / (length / 60):.2f} s per recorded min", f"wall {wall:.1f} s with start-up")
+    if len(times) >= 2:
+        import numpy as np
+
+        x = np.log([a for a, _ in times])
+        y = np.log([b for _, b in times])
+        slope = float(np.polyfit(x, y, 1)[0])
+        t.numbers["diagnose_exponent"] = slope
+        t.add("diagnose", "cost ~ length^k, k fitted over the lengths", f"k = {slope:.2f}",
+              f"{times[-1][1] / times[0][1]:.1f} x time for {times[-1][0] / times[0][0]:.0f} x length",
+              f"no worse than linear (k <= 1.1): {_verdict(slope <= 1.1)}")
+
+
+def _has_module(name: str) -> bool:
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ModuleNotFoundError:
+        return False
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="short runs (a smoke test, not the numbers to quote)")
+    ap.add_argument("--skip", nargs="*", default=[], choices=SECTIONS, metavar="SECTION",
+                    help=f"sections to leave out: {', '.join(SECTIONS)}")
+    ap.add_argument("--only", nargs="*", default=None, choices=SECTIONS, metavar="SECTION",
+                    help="run only these sections")
+    ap.add_argument("--json", help="also write every number measured here")
+    ap.add_argument("--workdir", default=str(ROOT / "out" / "bench"), help="where the recordings are cached")
+    ap.add_argument("--diagnose-timeout", type=float, default=3600.0, help="seconds allowed per diagnose run")
+    args = ap.parse_args(argv)
+    todo = [s for s in (args.only or SECTIONS) if s not in args.skip]
+    workdir = Path(args.workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    table = Table()
+    load0 = os.getloadavg()[0]
+    started = time.perf_counter()
+    runners: dict[str, Callable[[], None]] = {
+        "sim": lambda: section_sim(table, args.quick),
+        "latency": lambda: section_latency(table, args.quick),
+        "reader": lambda: section_reader(table, args.quick, workdir),
+        "replay": lambda: section_replay(table, args.quick, workdir),
+        "diagnose": lambda: section_diagnose(table, args.quick, workdir, args.diagnose_timeout),
+    }
+    for name in todo:
+        print(f"[{name}]", file=sys.stderr, flush=True)
+        try:
+            runners[name]()
+        except Exception as exc:  # noqa: BLE001 - one broken section must not lose the others' numbers
+            table.add(name, "error", f"{type(exc).__name__}: {exc}"[:120])
+    import numpy
+
+    from simvehicle import fastsim
+
+    numba_version = fastsim._numba.__version__ if fastsim.NUMBA else "not used"  # type: ignore[union-attr]
+    header = (f"flowhold benchmarks: {os.cpu_count()} cores, load average {load0:.1f} at start and "
+              f"{os.getloadavg()[0]:.1f} at end, Python {platform.python_version()}, numpy {numpy.__version__}, "
+              f"numba {numba_version}; {time.perf_counter() - started:.0f} s"
+              + (" (--quick: not the numbers to quote)" if args.quick else ""))
+    print(header)
+    print(table.render())
+    if args.json:
+        Path(args.json).write_text(json.dumps({"header": header, "rows": table.rows, "numbers": table.numbers},
+                                              indent=2, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

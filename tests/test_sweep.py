@@ -1,0 +1,139 @@
+"""Parameter sweeps: the sweep file's checks, the table's numbers, the command line."""
+
+from __future__ import annotations
+
+import csv
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion import config as C
+from companion.errors import ConfigError
+from simvehicle import fastsim, sweep
+from simvehicle.scenarios import SCENARIOS, figures
+
+REPO = Path(__file__).resolve().parent.parent
+PAPER = REPO / "configs" / "paper.toml"
+Q_TABLE_VI = 0.09 / 57.3
+
+
+def _write(tmp_path: Path, text: str, name: str = "s.toml") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def _small(tmp_path: Path, extra: str = "", base: Path = PAPER) -> Path:
+    return _write(tmp_path, f'base_config = "{base}"\nscenarios = ["step", "gust"]\n{extra}\n[grid]\n'
+                            f'"world.altitude_m" = [0.5, 1.0]\n'
+                            f'"flow_sensor.q_rad_per_count" = [{Q_TABLE_VI!r}, 0.003]\n')
+
+
+def _read(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_shipped_sweep_file_parses():
+    spec = sweep.load_sweep(REPO / "configs" / "sweeps" / "altitude_q.toml")
+    assert spec.scenarios == ("step", "gust")
+    assert [k for k, _ in spec.axes] == ["world.altitude_m", "flow_sensor.q_rad_per_count"]
+    assert spec.shape == (6, 6)
+    points = sweep.grid_configs(spec)
+    assert len(points) == 36
+    assert points[7][1].world.altitude_m == 0.5 and points[7][1].flow_sensor.q_rad_per_count == 0.001
+    assert Q_TABLE_VI in dict(spec.axes)["flow_sensor.q_rad_per_count"]  # Table VI's Q is on the grid
+
+
+@pytest.mark.parametrize("text,match", [
+    ('base_config = "{p}"\nscenarios = ["step"]\nstep_size = 1\n[grid]\n"world.altitude_m" = [1.0]\n',
+     "unknown key"),
+    ('scenarios = ["step"]\n[grid]\n"world.altitude_m" = [1.0]\n', "missing key base_config"),
+    ('base_config = "{p}"\nscenarios = ["hover"]\n[grid]\n"world.altitude_m" = [1.0]\n', "unknown scenario"),
+    ('base_config = "{p}"\nscenarios = ["rail"]\n[grid]\n"world.altitude_m" = [1.0]\n', "unknown scenario"),
+    ('base_config = "{p}"\nscenarios = ["step"]\n[grid]\n', "at least one axis"),
+    ('base_config = "{p}"\nscenarios = ["step"]\n[grid]\n"world.altitude_m" = 1.0\n', "non-empty list"),
+    ('base_config = "{p}"\nscenarios = ["step"]\n[grid]\n"world.altitude" = [1.0]\n', "unknown key"),
+    ('base_config = "{p}"\nscenarios = ["step"]\n[grid]\n"world.altitude_m" = [-1.0]\n', "altitude_m must be > 0"),
+    ('base_config = "{p}"\nscenarios = ["step"]\n[grid]\n"world.altitude_m" = ["high"]\n', "expected a number"),
+    ('base_config = "{p}"\nscenarios = ["step"]\n[grid]\n"altitude_m" = [1.0]\n', "section.key"),
+    ('base_config = "{p}"\nscenarios = ["step"]\n[grid]\n"effects.linear_drag.b" = [0.1]\n',
+     r"must list \[effects.linear_drag\]"),
+    ('base_config = "{p}"\nscenarios = ["step"]\n[grid]\n"effects.drag.b" = [0.1]\n', "unknown effect"),
+    ('base_config = "{p}"\nscenarios = ["step"]\nseeds = [1.5]\n[grid]\n"world.altitude_m" = [1.0]\n', "seeds"),
+    ('base_config = "nowhere.toml"\nscenarios = ["step"]\n[grid]\n"world.altitude_m" = [1.0]\n', "not found"),
+    ('base_config = "{p}"\nscenarios = ["step"\n', "not valid TOML"),
+])
+def test_bad_sweep_files_are_config_errors(tmp_path, text, match):
+    with pytest.raises(ConfigError, match=match):
+        sweep.load_sweep(_write(tmp_path, text.replace("{p}", str(PAPER))))
+
+
+def test_sweep_rows_are_the_scenario_figures(tmp_path, paper_cfg):
+    """Each row holds ``scenarios.figures`` of its config's flight (fast engine, MAVLink
+    quantization: the numbers ``python -m simvehicle scenario`` prints), in grid order."""
+    spec = sweep.load_sweep(_small(tmp_path))
+    rows = sweep.run_sweep(spec, workers=1, progress=False)
+    assert [(r["world.altitude_m"], r["flow_sensor.q_rad_per_count"]) for r in rows] == \
+        [(0.5, Q_TABLE_VI), (0.5, 0.003), (1.0, Q_TABLE_VI), (1.0, 0.003)]
+    for r, (_, cfg) in zip(rows, sweep.grid_configs(spec), strict=True):
+        for name in ("step", "gust"):
+            fig = figures(fastsim.fly_fast(cfg, SCENARIOS[name]), cfg)
+            assert r[f"{name}_overshoot_pct_x" if name == "step" else f"{name}_displacement_m_x"] == \
+                (fig["x"]["overshoot_pct"] if name == "step" else fig["x"]["displacement_m"])
+    paper_row = rows[2]
+    # the paper's point (Table VI): Fig. 16 rise under 1 s, Fig. 17 pushed back 2.7-2.9 m
+    assert paper_row["step_rise_time_10_90_s_x"] < 1.0
+    assert -2.9 <= paper_row["gust_displacement_m_x"] <= -2.7
+    # a 4 N force held by tilt alone: tan(theta) = F / (m g), whatever the altitude and Q
+    held = -math.degrees(math.atan(4.0 / (2.3 * 9.81)))
+    for r in rows:
+        assert r["gust_held_angle_deg_x"] == pytest.approx(held, abs=0.1)
+        assert r["step_held_frames"] == 0.0
+
+
+def test_effect_axis_and_seeds(tmp_path):
+    """An effect's parameter as an axis, and Monte Carlo seeds with gyro noise on."""
+    base = tmp_path / "noisy.toml"
+    base.write_text(PAPER.read_text().replace("gyro_noise = false", "gyro_noise = true")
+                    + "\n[effects.linear_drag]\nenabled = true\nb = 0.2\n")
+    spec = sweep.load_sweep(_write(tmp_path, f'base_config = "{base.name}"\nscenarios = ["step"]\n'
+                                             f'seeds = [1, 2, 3]\n[grid]\n"effects.linear_drag.b" = [0.0, 0.5]\n'))
+    assert sweep.grid_configs(spec)[1][1].effects.linear_drag == C.LinearDrag(0.5)
+    rows = sweep.run_sweep(spec, workers=1, progress=False)
+    assert [(r["effects.linear_drag.b"], r["seed"]) for r in rows] == [(b, s) for b in (0.0, 0.5) for s in (1, 2, 3)]
+    finals = np.array([r["step_final_velocity_m_s_x"] for r in rows])
+    assert len(set(finals.tolist())) == 6  # the noise differs by seed
+    assert np.all(np.abs(finals - 2.0) < 0.05)  # and the PI holds 2 m/s with or without drag
+
+
+def test_sweep_command_line_with_workers(tmp_path):
+    """``python -m simvehicle sweep``: two processes, a CSV equal to the in-process sweep, a plot."""
+    path = _small(tmp_path)
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "simvehicle", "sweep", str(path), "--out", str(out), "--workers", "2"],
+                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    assert "4 rows" in r.stdout and "8 flights" in r.stdout
+    assert "sweep" in r.stderr  # the progress bar
+    table = _read(out / "sweep.csv")
+    here = sweep.run_sweep(sweep.load_sweep(path), workers=1, progress=False)
+    assert len(table) == 4
+    for got, want in zip(table, here, strict=True):
+        for k, v in want.items():
+            assert float(got[k]) == pytest.approx(v, rel=1e-15, abs=0) or (math.isnan(v) and got[k] == "nan")
+    assert (out / "sweep.png").stat().st_size > 20_000
+
+
+def test_sweep_command_line_bad_file_is_one_line(tmp_path):
+    path = _write(tmp_path, f'base_config = "{PAPER}"\nscenarios = ["step"]\nextra = 1\n[grid]\n'
+                            '"world.altitude_m" = [1.0]\n')
+    r = subprocess.run([sys.executable, "-m", "simvehicle", "sweep", str(path), "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert r.returncode == 3  # ExitCode.CONFIG
+    assert r.stderr.strip().count("\n") == 0 and "unknown key(s) extra" in r.stderr
+    assert "Traceback" not in r.stderr
