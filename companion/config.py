@@ -108,8 +108,8 @@ class CompanionSettings:
     range_timeout_s: float
     #: a gyro sample further than this from a flow frame's time is not aligned with it
     max_gyro_skew_s: float
-    #: |flow counts| per frame beyond this are a spike (outlier), not motion
-    max_flow_counts_per_frame: int
+    #: a scene-angle rate beyond this (rad/s, the flow sensor's physical limit) is a spike, not motion
+    max_flow_rate_rad_s: float
     #: body rate for eq. 15: "imu" (RAW_IMU nearest the frame), "flow" (the flow message's own
     #: body rate), or "auto" (flow for the ardupilot profile, imu otherwise; docs/ardupilot.md)
     gyro_source: str
@@ -310,7 +310,7 @@ def validate(cfg: Config) -> None:
         (cfg.world.altitude_m > 0, "world.altitude_m must be > 0"),
         (cfg.sim.substeps_per_frame >= 4, "sim.substeps_per_frame must be >= 4 (much finer than a frame)"),
         (cfg.companion.max_speed_m_s > 0, "companion.max_speed_m_s must be > 0"),
-        (cfg.companion.max_flow_counts_per_frame > 0, "companion.max_flow_counts_per_frame must be > 0"),
+        (cfg.companion.max_flow_rate_rad_s > 0, "companion.max_flow_rate_rad_s must be > 0"),
         (cfg.companion.gyro_source in ("auto", "imu", "flow"), "companion.gyro_source must be auto, imu or flow"),
         (cfg.companion.velocity_filter in ("none", "tilt"), "companion.velocity_filter must be none or tilt"),
     ]

@@ -178,7 +178,7 @@ class StepParams:
             range_min_m=cfg.rangefinder.min_m,
             range_max_m=cfg.rangefinder.max_m,
             # a spike: more than this scene-angle rate (rad/s) in one frame
-            max_scene_rate_rad_s=c.max_flow_counts_per_frame * cfg.flow_sensor.q_rad_per_count / t_nom,
+            max_scene_rate_rad_s=c.max_flow_rate_rad_s,
             repeat_window_s=REPEAT_WINDOW_FRAMES * t_nom,
             kp_rad_per_m_s=cfg.controller.kp_rad_per_m_s,
             ki_rad_per_m=cfg.controller.ki_rad_per_m,

@@ -554,7 +554,7 @@ def _params(cfg: Config, T: float, turb_sigma_n: float, turb_tau_s: float) -> tu
     row[P_LAG], row[P_TAU_D] = float(lag), tau_d
     row[P_Q_NOM], row[P_KP], row[P_KI] = q, cfg.controller.kp_rad_per_m_s, cfg.controller.ki_rad_per_m
     row[P_LIMIT], row[P_VMAX] = cfg.controller.tilt_limit_rad, cc.max_speed_m_s
-    row[P_MAX_RATE] = cc.max_flow_counts_per_frame * q / T
+    row[P_MAX_RATE] = cc.max_flow_rate_rad_s
     row[P_GYRO_LIMIT] = math.radians(imu.gyro_range_deg_s) * 0.999
     row[P_RANGE_MIN], row[P_RANGE_MAX] = rf.min_m, rf.max_m
     row[P_RANGE_MIN_CM], row[P_RANGE_MAX_CM] = float(round(rf.min_m * 100)), float(round(rf.max_m * 100))

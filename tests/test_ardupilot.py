@@ -225,7 +225,7 @@ def test_flight_a_converted_to_the_paper_convention_gives_the_same_velocity(tmp_
     equals the ardupilot profile's within the quantization, Q / (2 dt) times the range."""
     q = 1e-5
     cfg = replace_section(replace_section(paper_cfg, "flow_sensor", q_rad_per_count=q), "companion",
-                          max_flow_counts_per_frame=30000)
+                          max_flow_rate_rad_s=1e3)
     dst = tmp_path / "flight_a_paper.tlog"
     convert_tlog(FLIGHT_A, dst, src=Profile.ARDUPILOT, dst=Profile.PAPER, cfg=cfg)
     a = replay(rec, cfg, Profile.ARDUPILOT, EstimatorOptions(GyroSource.IMU))

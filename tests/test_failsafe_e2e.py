@@ -102,7 +102,7 @@ def test_sensor_fault_holds_level_and_resumes(session, param, value, cause):
 
 def test_flow_spike_holds_one_frame(session):
     gcs = session.gcs
-    gcs.set_param("SIM_FLOW_FAULT", 3)  # 500 counts once, beyond companion.max_flow_counts_per_frame = 100
+    gcs.set_param("SIM_FLOW_FAULT", 3)  # 500 counts once (39 rad/s), beyond companion.max_flow_rate_rad_s = 7.4
     targets, seen_text, after = [], False, 0
     while after < 4:  # the vehicle's targets around the STATUSTEXT
         m = gcs.recv(("ATTITUDE_TARGET", "STATUSTEXT"), timeout_s=30)
