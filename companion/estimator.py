@@ -9,6 +9,7 @@ FRD) time-aligned to the frame, ``A`` the range to the ground (m).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +35,14 @@ def scene_rate(scene: Any, increment: bool, integration_s: Any, frame_dt_s: Any)
         return scene
     dt = np.where(np.isfinite(integration_s) & (np.asarray(integration_s) > 0), integration_s, frame_dt_s)
     return scene / dt
+
+
+def scene_rate_scalar(scene: float, increment: bool, integration_s: float, frame_dt_s: float) -> float:
+    """``scene_rate`` for one frame in plain floats (the live loop's hot path), same rule."""
+    if not increment:
+        return scene
+    own = integration_s == integration_s and integration_s != math.inf and integration_s > 0.0
+    return scene / (integration_s if own else frame_dt_s)
 
 
 def frame_spacing(prev_time_s: float | None, time_s: float, nominal_s: float) -> float:
@@ -71,7 +80,7 @@ class VelocitySensor:
         """Returns (vx_m_s, vy_m_s, frame_dt_s, scene_rate_x_rad_s, scene_rate_y_rad_s)."""
         dt = frame_spacing(self.prev_time_s, time_s, self.nominal_frame_s)
         self.prev_time_s = time_s
-        rx = float(scene_rate(scene_x, increment, integration_s, dt))
-        ry = float(scene_rate(scene_y, increment, integration_s, dt))
+        rx = scene_rate_scalar(scene_x, increment, integration_s, dt)
+        ry = scene_rate_scalar(scene_y, increment, integration_s, dt)
         vx, vy = velocity_from_flow(rx, ry, gyro_x_rad_s, gyro_y_rad_s, range_m)
         return float(vx), float(vy), dt, rx, ry

@@ -13,20 +13,19 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from companion.core import CompanionCore, StepOutput
-from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FieldView, FlowColumns, Profile, flow_columns
+from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FlowColumns, Profile, flow_scalar
 
 DOWNWARD = 25  # MAV_SENSOR_ROTATION_PITCH_270
 BODY_FRAMES = (8, 9, 12)  # MAV_FRAME_BODY_NED, BODY_OFFSET_NED, BODY_FRD
 LOCAL_NED = 1
+#: POSITION_TARGET type_mask bits: vx, vy ignored (a position or acceleration target)
+VELOCITY_IGNORED = 0b11000
 INT16_CLIP = 32767  # RAW_IMU / SCALED_IMU gyro fields (mrad/s) at this magnitude have clipped
 
 
 def scalar_flow(msg: Any, profile: Profile, q_rad_per_count: float) -> FlowColumns:
-    """One flow message as scalars in the paper's convention."""
-    c = flow_columns(FieldView(msg), profile, q_rad_per_count)
-    return FlowColumns(float(c.time_s), float(c.scene_x), float(c.scene_y), c.increment,
-                       float(c.integration_s), int(c.quality), float(c.counts_x), float(c.counts_y),
-                       float(c.body_x_rad_s), float(c.body_y_rad_s))
+    """One flow message as scalars in the paper's convention (``profiles.flow_scalar``)."""
+    return flow_scalar(msg, profile, q_rad_per_count)
 
 
 def gyro_time_s(msg: Any) -> float:
@@ -43,7 +42,7 @@ class MessageRouter:
     core: CompanionCore
     profile: Profile
     vehicle_sysid: int | None = None
-    #: messages ignored, by reason (wrong sender, wrong orientation, bad values)
+    #: messages ignored (wrong sender or target, wrong orientation, bad values) or setpoints clipped, by reason
     ignored: dict[str, int] = field(default_factory=dict)
     yaw_rad: float = 0.0
     last_setpoint_time: float | None = None
@@ -83,11 +82,18 @@ class MessageRouter:
         return None
 
     def _setpoint(self, msg: Any, mtype: str, now_s: float | None) -> None:
+        target = msg.target if mtype == "MANUAL_CONTROL" else msg.target_system
+        if self.vehicle_sysid is not None and target not in (0, self.vehicle_sysid):
+            self._ignore("setpoint for another system")
+            return
+        vmax = self.core.cfg.companion.max_speed_m_s
         if mtype == "MANUAL_CONTROL":
-            vmax = self.core.cfg.companion.max_speed_m_s
             vx, vy = msg.x / 1000.0 * vmax, msg.y / 1000.0 * vmax
         else:
             if msg.target_component not in (0, 191):
+                return
+            if msg.type_mask & VELOCITY_IGNORED:
+                self._ignore("setpoint without a horizontal velocity")
                 return
             vx, vy = float(msg.vx), float(msg.vy)
             if msg.coordinate_frame == LOCAL_NED:
@@ -99,5 +105,7 @@ class MessageRouter:
         if not (math.isfinite(vx) and math.isfinite(vy)):
             self._ignore("non-finite setpoint")
             return
+        if max(abs(vx), abs(vy)) > vmax:
+            self._ignore("setpoint beyond max_speed_m_s (clipped)")
         self.core.set_setpoint(vx, vy)
         self.last_setpoint_time = now_s
