@@ -2,16 +2,20 @@
 
 A .tlog is a sequence of records: an 8-byte big-endian UNIX time in microseconds, then one
 raw MAVLink 1 (STX 0xFE) or MAVLink 2 (STX 0xFD) packet. pymavlink reads one Python object per
-message (~10 µs each); this reader finds, checks and decodes all packets with numpy:
+message (tens of µs each); this reader finds, checks and decodes all packets with numpy:
 
 1. every 0xFE / 0xFD byte is a candidate packet start; its header gives its length;
-2. candidates whose successor record starts where their length says (or that end the file)
-   have their CRC-16/MCRF4XX (with the dialect's ``crc_extra``) checked, vectorised; the
-   packets that pass, without overlapping bodies, are the records;
-3. the bytes between records (damage) are searched again for any packet that passes its CRC;
+2. candidates from which the record chain goes on for two more records (each next STX 8 bytes
+   after the packet its length says, or the end of the file) have their CRC-16/MCRF4XX (with
+   the dialect's ``crc_extra``) checked, vectorised; those that pass, without overlapping
+   bodies, are the records;
+3. between the packets found (where there was damage) every other candidate is checked;
+   what is still left is accounted for by following the record chain through it (damaged
+   packets, unrecognisable bytes, a truncated last record);
 4. each message type is decoded at once with a structured dtype built from the dialect's
    wire layout (zero-padding MAVLink 2 payloads whose trailing zeros were truncated; the
    13-byte signature of signed packets is skipped, not checked, like pymavlink without a key).
+   A record's time is the 8 bytes right before its STX.
 
 Field names and values are pymavlink's (``pymavlink.dialects.v20.ardupilotmega``): raw MAVLink
 units, the wire dtype of each field (``float32``, ``int16``, ...), char arrays as ``str``
@@ -22,7 +26,10 @@ as pymavlink's ``MAVLink_unknown``) only where they fit the record chain exactly
 
 On a file without damage the records, their order and their values equal what
 ``pymavlink.mavutil.mavlink_connection(path, dialect="ardupilotmega")`` yields with
-MAVLink 2 decoding (environment ``MAVLINK20=1``, or a file whose first packet is MAVLink 2).
+MAVLink 2 decoding (environment ``MAVLINK20=1``, or a file whose first packet is MAVLink 2),
+less its BAD_DATA. One known difference: pymavlink 2.4.50's file reader reads 12 bytes for a
+MAVLink 1 packet shorter than that (payload under 4 bytes) that follows a MAVLink 2 one, and
+misframes the records after it; this reader keeps them.
 """
 
 from __future__ import annotations
@@ -36,7 +43,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion.errors import RecordingError
@@ -60,6 +66,16 @@ TIME_SPIKE_TOL_S = 1.0
 TIME_SPIKE_TOL_END_S = 86400.0
 #: bytes per CRC work block (bounds the temporary arrays of the vectorised CRC)
 _CRC_BLOCK_BYTES = 1 << 22
+#: bytes of the file scanned for packet starts at a time
+_SCAN_CHUNK = 1 << 23
+#: bytes of payload rows decoded per block
+_DECODE_BLOCK_BYTES = 1 << 20
+#: the CRC is computed on rows whose width is a multiple of this many bytes (8: see _KEEP_FROM)
+_CRC_WIDTH_STEP = 8
+#: a little-endian 8-byte word with its first k bytes cleared, for k = 0..7
+_KEEP_FROM = np.array([(2**64 - 1) << (8 * k) & (2**64 - 1) for k in range(8)], dtype=np.uint64)
+#: rows per block of the CRC's transposed table look-ups (kept within the CPU caches)
+_CRC_ROWS_PER_BLOCK = 16384
 
 _NUMPY_CODES = {"b": "i1", "B": "u1", "h": "<i2", "H": "<u2", "i": "<i4", "I": "<u4",
                 "q": "<i8", "Q": "<u8", "f": "<f4", "d": "<f8"}
@@ -161,23 +177,48 @@ def _make_layout(msgid: int, cls: type) -> MessageLayout:
 
 
 @functools.cache
+def layout_of(msgid: int) -> MessageLayout | None:
+    """Decoding layout of message ``msgid`` (None if the ardupilotmega dialect does not
+    define it), built on first use."""
+    cls = mavlink2.mavlink_map.get(msgid)
+    return None if cls is None else _make_layout(msgid, cls)
+
+
 def layouts() -> dict[int, MessageLayout]:
-    """Decoding layout of every message the ardupilotmega dialect defines, by message id."""
-    return {int(mid): _make_layout(int(mid), cls) for mid, cls in mavlink2.mavlink_map.items()}
+    """Decoding layout of every message the dialect defines, by message id."""
+    return {mid: lay for mid in mavlink2.mavlink_map if (lay := layout_of(int(mid))) is not None}
 
 
 @functools.cache
 def _crc_extra_lookup() -> tuple[np.ndarray, np.ndarray]:
     """(known, crc_extra): arrays indexed by message id (size max id + 2; the last slot is
     where out-of-range ids are clipped to, and is unknown)."""
-    table = layouts()
-    size = max(table) + 2
+    size = max(mavlink2.mavlink_map) + 2
     known = np.zeros(size, dtype=bool)
     extra = np.zeros(size, dtype=np.uint8)
-    for mid, lay in table.items():
+    for mid, cls in mavlink2.mavlink_map.items():
         known[mid] = True
-        extra[mid] = lay.crc_extra
+        extra[mid] = cls.crc_extra
     return known, extra
+
+
+def _view_as(buf: np.ndarray, dtype: str) -> np.ndarray:
+    """``buf`` (uint8) as overlapping items of ``dtype``, one starting at every byte: item
+    ``i`` is the value stored in ``buf[i:i + itemsize]``."""
+    dt = np.dtype(dtype)
+    return np.ndarray(shape=(len(buf) - dt.itemsize + 1,), dtype=dt, buffer=buf, strides=(1,))
+
+
+def gather_rows(buf: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
+    """The bytes ``buf[a:a + width]`` for each ``a`` in ``starts``: (n, width) uint8, a copy.
+
+    ``buf`` (uint8, C-contiguous) must extend ``width`` bytes past every start. Gathers
+    whole rows as ``width``-byte items of an overlapping view (stride 1 byte), one copy per row
+    rather than per byte.
+    """
+    items = np.ndarray(shape=(len(buf) - width + 1,), dtype=np.dtype((np.void, width)),
+                       buffer=buf, strides=(1,))
+    return items[starts].view(np.uint8).reshape(len(starts), width)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -219,42 +260,77 @@ def crc16_mcrf4xx(data: bytes) -> int:
     return crc
 
 
-def crc_of_rows(rows: np.ndarray, extra: np.ndarray) -> np.ndarray:
+@functools.cache
+def _pair_table(d: int) -> np.ndarray:
+    """Contribution of a little-endian byte pair ``x = b_0 | b_1 << 8`` whose second byte is
+    ``d`` steps from the end of the CRC'd sequence: (65536,) uint16."""
+    pos, _ = _crc_tables()
+    return np.bitwise_xor.outer(pos[d], pos[d + 1]).reshape(-1)  # index: b_1 * 256 + b_0
+
+
+def _crc_linear(rows: np.ndarray) -> np.ndarray:
+    """The data-dependent part of the CRC of rows of bytes followed by one more byte:
+    ``XOR_c Z^(M-c)(T[rows[:, c]])``. ``rows``: (n, M) uint8, C-contiguous, M even.
+    Works on blocks of rows, two bytes per table look-up. Returns (n,) uint16."""
+    n, width = rows.shape
+    pairs = rows.view("<u2")
+    tables = [_pair_table(width - c - 1) for c in range(0, width, 2)]
+    out = np.zeros(n, dtype=np.uint16)
+    block = _CRC_ROWS_PER_BLOCK
+    for a in range(0, n, block):
+        cols = np.ascontiguousarray(pairs[a:a + block].T)
+        acc = out[a:a + block]
+        for tab, col in zip(tables, cols, strict=True):
+            acc ^= tab.take(col)
+    return out
+
+
+def crc_of_rows(rows: np.ndarray, extra: np.ndarray | int) -> np.ndarray:
     """MAVLink CRCs of equal-length byte rows.
 
-    ``rows``: (n, L) uint8, the bytes after STX up to the end of the payload; ``extra``: (n,)
-    uint8 crc_extra of each row's message. Returns (n,) uint16.
+    ``rows``: (n, L) uint8, the bytes after STX up to the end of the payload; ``extra``:
+    crc_extra of each row's message ((n,) uint8 or one int). Returns (n,) uint16.
     """
     pos, init = _crc_tables()
     n, length = rows.shape
-    crc = np.full(n, init[length + 1], dtype=np.uint16)
-    crc ^= pos[0][extra]
-    cols = np.ascontiguousarray(rows.T)
-    for j in range(length):
-        crc ^= pos[length - j][cols[j]]
+    if length % 2:  # a leading zero byte leaves the data-dependent part unchanged
+        rows = np.concatenate((np.zeros((n, 1), dtype=np.uint8), rows), axis=1)
+    crc = _crc_linear(np.ascontiguousarray(rows, dtype=np.uint8))
+    crc ^= init[length + 1]
+    crc ^= pos[0][np.asarray(extra, dtype=np.uint8)]
     return crc
 
 
-def _check_crc(buf: np.ndarray, s: np.ndarray, hdr: np.ndarray, plen: np.ndarray,
-               extra: np.ndarray) -> np.ndarray:
-    """Which candidate packets (STX at ``s``, header and payload lengths) carry a good CRC.
-    Candidates must lie inside ``buf`` (padding included). Returns (n,) bool."""
+def _check_crc(buf: np.ndarray, s: np.ndarray, covered: np.ndarray, extra: np.ndarray) -> np.ndarray:
+    """Which candidate packets carry a good CRC. ``s``: STX positions; ``covered``: bytes
+    after STX up to the end of the payload (header - 1 + payload length); ``extra``: the
+    message's crc_extra. Candidates must lie inside ``buf`` (padding included) and ``s >= 7``.
+    Returns (n,) bool.
+
+    Packets are checked in a few width classes (multiples of ``_CRC_WIDTH_STEP`` bytes): each
+    row is the ``width`` bytes that end with the payload, its bytes before STX + 1 zeroed;
+    leading zeros leave the data-dependent part of the CRC unchanged.
+    """
+    pos, init = _crc_tables()
     good = np.zeros(len(s), dtype=bool)
     if len(s) == 0:
         return good
-    covered = hdr - 1 + plen  # bytes after STX up to the end of the payload
-    crc_at = s + hdr + plen
-    stored = buf[crc_at].astype(np.uint16) | (buf[crc_at + 1].astype(np.uint16) << 8)
-    order = np.argsort(covered, kind="stable")
-    sorted_len = covered[order]
-    bounds = np.flatnonzero(np.diff(sorted_len)) + 1
+    crc_at = s + 1 + covered
+    stored = _view_as(buf, "<u2")[crc_at]
+    expected_const = init[covered + 1] ^ pos[0][extra]
+    key = ((covered + (_CRC_WIDTH_STEP - 1)) & -_CRC_WIDTH_STEP).astype(np.uint16)  # width class
+    start = crc_at - key  # >= 0: STX is at 8 or later, and the row reaches back at most 7 before STX + 1
+    order = np.argsort(key, kind="stable")  # radix sort on 16-bit keys
+    bounds = np.flatnonzero(np.diff(key[order])) + 1
     for group in np.split(order, bounds):
-        length = int(covered[group[0]])
-        windows = sliding_window_view(buf, length)
-        step = max(1, _CRC_BLOCK_BYTES // max(length, 1))
+        w = int(key[group[0]])
+        step = max(1, _CRC_BLOCK_BYTES // w)
         for a in range(0, len(group), step):
             idx = group[a:a + step]
-            good[idx] = crc_of_rows(windows[s[idx] + 1], extra[idx]) == stored[idx]
+            rows = gather_rows(buf, start[idx], w)
+            lead = w - covered[idx]  # 0-7 bytes before STX + 1, in the row's first 8: zero them
+            rows.view("<u8")[:, 0] &= _KEEP_FROM[lead]
+            good[idx] = (_crc_linear(rows) ^ expected_const[idx]) == stored[idx]
     return good
 
 
@@ -263,52 +339,91 @@ def _check_crc(buf: np.ndarray, s: np.ndarray, hdr: np.ndarray, plen: np.ndarray
 
 
 @dataclass
-class _Candidates:
-    """Candidate packet starts and what their headers claim (all arrays (n,), int64 unless
-    noted). ``total``: packet length including signature; ``ok_header``: known message id and
-    valid MAVLink 2 incompatibility flags; ``known``: the dialect defines the message id."""
+class _Packets:
+    """Packets (or candidates) as parallel arrays of length n, sorted by position.
+
+    ``s``: offset of STX in the file (int64); ``hdr``: header length, 6 or 10 (uint8);
+    ``plen``: payload length as sent (int16); ``total``: packet length with CRC and signature
+    (int16); ``msgid``: message id (int32); ``sysid``, ``compid``: sender (uint8);
+    ``t_us``: the 8 bytes before STX as a big-endian time, µs (uint64).
+    """
 
     s: np.ndarray
     hdr: np.ndarray
     plen: np.ndarray
     total: np.ndarray
     msgid: np.ndarray
-    known: np.ndarray
-    flags_ok: np.ndarray
+    sysid: np.ndarray
+    compid: np.ndarray
+    t_us: np.ndarray
 
-    @property
+    _FIELDS = ("s", "hdr", "plen", "total", "msgid", "sysid", "compid", "t_us")
+
+    @functools.cached_property
     def end(self) -> np.ndarray:
+        """Offset just past each packet (int64)."""
         return self.s + self.total
 
-    def subset(self, idx: np.ndarray) -> _Candidates:
-        return _Candidates(self.s[idx], self.hdr[idx], self.plen[idx], self.total[idx],
-                           self.msgid[idx], self.known[idx], self.flags_ok[idx])
+    def subset(self, idx: np.ndarray) -> _Packets:
+        return _Packets(*(getattr(self, f)[idx] for f in self._FIELDS))
+
+    def where(self, mask: np.ndarray) -> _Packets:
+        """The packets where ``mask`` is True (self when it is True everywhere)."""
+        return self if mask.all() else self.subset(np.flatnonzero(mask))
+
+    @staticmethod
+    def concat(parts: list[_Packets]) -> _Packets:
+        """All of ``parts`` in one; empties ``parts`` as it goes (memory)."""
+        if not parts:
+            return _parse_headers(np.zeros(_PAD, dtype=np.uint8), np.zeros(0, dtype=np.int64))[0]
+        columns = []
+        for f in _Packets._FIELDS:
+            columns.append(np.concatenate([getattr(p, f) for p in parts]))
+            for p in parts:
+                setattr(p, f, None)
+        return _Packets(*columns)
 
 
-def _find_stx(buf: np.ndarray, n_bytes: int, chunk: int = 1 << 23) -> Iterator[np.ndarray]:
+def _is_stx(b: np.ndarray) -> np.ndarray:
+    """Which bytes are 0xFE or 0xFD."""
+    return (b - np.uint8(STX_V2)) < 2
+
+
+def _claimed_end(buf: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Where packets starting at ``s`` end, by their STX, length and signed flag (int64)."""
+    v2 = buf[s] == STX_V2
+    sig = SIGNATURE_LEN * ((buf[s + 2] & v2) & 1)
+    return s + np.where(v2, HEADER_LEN_V2 + CRC_LEN, HEADER_LEN_V1 + CRC_LEN) + buf[s + 1] + sig
+
+
+def _find_stx(buf: np.ndarray, n_bytes: int, chunk: int = _SCAN_CHUNK) -> Iterator[np.ndarray]:
     """Positions (int64) of 0xFE / 0xFD bytes at or after offset 8, chunk by chunk."""
-    lo = np.uint8(STX_V2)
     for a in range(TIME_HEADER_LEN, n_bytes, chunk):
         part = buf[a:min(a + chunk, n_bytes)]
-        yield np.flatnonzero((part - lo) < 2) + a
+        hits = np.flatnonzero(part >= STX_V2)  # 0xFD, 0xFE and 0xFF: one pass over the bytes
+        yield hits[part[hits] != 0xFF] + a
 
 
-def _parse_headers(buf: np.ndarray, s: np.ndarray) -> _Candidates:
-    """Header fields of the candidates at ``s`` (buf must be padded past the file end)."""
-    v2 = buf[s] == STX_V2
-    plen = buf[s + 1].astype(np.int64)
-    flags = np.where(v2, buf[s + 2], 0)
-    hdr = np.where(v2, HEADER_LEN_V2, HEADER_LEN_V1)
-    sig = np.where(v2 & ((flags & 1) == 1), SIGNATURE_LEN, 0)
-    total = hdr + plen + CRC_LEN + sig
-    msgid = np.where(
-        v2,
-        buf[s + 7].astype(np.int64) | (buf[s + 8].astype(np.int64) << 8) | (buf[s + 9].astype(np.int64) << 16),
-        buf[s + 5].astype(np.int64))
+def _parse_headers(buf: np.ndarray, s: np.ndarray) -> tuple[_Packets, np.ndarray]:
+    """What the time headers and packet headers of the candidates at ``s`` (all >= 8) say
+    (``buf`` padded past the file end), and whether each is decodable: a message id the
+    dialect defines and MAVLink 2 incompatibility flags pymavlink accepts (only "signed")."""
+    head = gather_rows(buf, s - TIME_HEADER_LEN, TIME_HEADER_LEN + HEADER_LEN_V2)
+    t_us = np.ascontiguousarray(head[:, :TIME_HEADER_LEN]).view(">u8").reshape(-1).astype(np.uint64)
+    head = head[:, TIME_HEADER_LEN:]
+    v2 = head[:, 0] == STX_V2
+    plen = head[:, 1].astype(np.int16)
+    flags = head[:, 2] * v2
+    hdr = np.where(v2, HEADER_LEN_V2, HEADER_LEN_V1).astype(np.uint8)
+    total = hdr + plen + CRC_LEN + SIGNATURE_LEN * (flags & 1)
+    id_v2 = (head[:, 7].astype(np.int32) | (head[:, 8].astype(np.int32) << 8)
+             | (head[:, 9].astype(np.int32) << 16))
+    msgid = np.where(v2, id_v2, head[:, 5].astype(np.int32))
+    sysid = np.where(v2, head[:, 5], head[:, 3])
+    compid = np.where(v2, head[:, 6], head[:, 4])
     known_tab, _ = _crc_extra_lookup()
-    known = known_tab[np.minimum(msgid, len(known_tab) - 1)]
-    flags_ok = (flags & 0xFE) == 0
-    return _Candidates(s, hdr, plen, total, msgid, known, flags_ok)
+    ok = known_tab[np.minimum(msgid, len(known_tab) - 1)] & ((flags & 0xFE) == 0)
+    return _Packets(s, hdr, plen, total.astype(np.int16), msgid, sysid, compid, t_us), ok
 
 
 def _non_overlapping(s: np.ndarray, end: np.ndarray) -> np.ndarray:
@@ -337,15 +452,23 @@ def _non_overlapping(s: np.ndarray, end: np.ndarray) -> np.ndarray:
     return keep
 
 
-def _gaps(s: np.ndarray, end: np.ndarray, n_bytes: int) -> tuple[np.ndarray, np.ndarray]:
-    """Byte ranges ``[a, b)`` not covered by any record (time header + packet) of the
-    accepted packets (``s`` sorted, bodies disjoint)."""
-    prev_end = np.concatenate(([0], end))
-    rec_start = np.concatenate((s - TIME_HEADER_LEN, [n_bytes]))
-    a = prev_end
-    b = np.maximum(rec_start, prev_end)
-    has = b > a
-    return a[has], b[has]
+def _gaps(s: np.ndarray, end: np.ndarray, n_bytes: int, *, header: int = TIME_HEADER_LEN
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Byte ranges ``[a, b)`` not covered by any record (``header`` time bytes + packet) of
+    the packets ``[s, end)`` (``s`` sorted, bodies disjoint). ``header=0``: the ranges between
+    packet bodies, longer than a time header (where another packet could be)."""
+    if len(s) == 0:
+        return np.array([0]), np.array([n_bytes])
+    least = 0 if header else TIME_HEADER_LEN
+    inner = np.flatnonzero(s[1:] - header - end[:-1] > least)
+    a = [[0]] if s[0] - header > least else []
+    a += [end[inner]]
+    b = [[s[0] - header]] if s[0] - header > least else []
+    b += [s[inner + 1] - header]
+    if n_bytes > end[-1] + least:
+        a.append([end[-1]])
+        b.append([n_bytes])
+    return np.concatenate(a).astype(np.int64), np.concatenate(b).astype(np.int64)
 
 
 @dataclass
@@ -424,39 +547,44 @@ def _walk_gap(buf: np.ndarray, a: int, b: int, n_bytes: int) -> _GapWalk:
 # Record times
 
 
+def _spikes(t: np.ndarray, tol_s: float) -> np.ndarray:
+    """Which of ``t[2:-2]`` lie further than ``tol_s`` from the median of their four nearest
+    neighbours, beyond the spread of the middle two of them. (n - 4,) bool."""
+    a, b, c, d = t[:-4], t[1:-3], t[3:-1], t[4:]
+    lo = np.maximum(np.minimum(a, b), np.minimum(c, d))  # the middle two of four values
+    hi = np.minimum(np.maximum(a, b), np.maximum(c, d))
+    return np.abs(t[2:-2] - 0.5 * (lo + hi)) > tol_s + np.abs(hi - lo)
+
+
 def _repair_times(t_us: np.ndarray, untrusted: np.ndarray) -> tuple[np.ndarray, int]:
-    """Replace record times that cannot be right by the previous trusted record's time.
+    """Record times in s, with those that cannot be right replaced by the previous trusted
+    record's time; and how many were replaced.
 
     A time is damage when its header overlapped the packet before (``untrusted``) or when it
-    is a spike: further than ``TIME_SPIKE_TOL_S`` (ends: ``TIME_SPIKE_TOL_END_S``) from the
-    median of its four nearest neighbours, beyond the spread of their middle two (so steps,
-    gaps and backward jumps of the clock are left alone). Returns (times in s, number replaced).
+    is a spike: further than ``TIME_SPIKE_TOL_S`` from the median of its four nearest
+    neighbours, beyond the spread of their middle two, so steps, gaps and backward jumps of
+    the clock stay as they are. The first and last two records, with neighbours on one side
+    only, use ``TIME_SPIKE_TOL_END_S``.
     """
-    t = t_us.astype(np.float64) / 1e6
+    t = t_us / 1e6
     n = len(t)
     bad = untrusted.copy()
-    if n >= 3:
-        padded = np.concatenate((np.full(2, np.nan), t, np.full(2, np.nan)))
-        neigh = np.stack([padded[0:n], padded[1:n + 1], padded[3:n + 3], padded[4:n + 4]], axis=1)
-        neigh = np.sort(neigh, axis=1)  # NaN last
-        count = np.sum(~np.isnan(neigh), axis=1)
-        lo_i = (count - 1) // 2
-        hi_i = count // 2
-        rows = np.arange(n)
-        m1 = neigh[rows, lo_i]
-        m2 = neigh[rows, hi_i]
-        med = 0.5 * (m1 + m2)
-        tol = np.full(n, TIME_SPIKE_TOL_S)
-        tol[:2] = TIME_SPIKE_TOL_END_S
-        tol[-2:] = TIME_SPIKE_TOL_END_S
-        bad |= np.abs(t - med) > tol + np.abs(m2 - m1)
+    block = 1 << 18
+    if n >= 5:
+        for a in range(0, n - 4, block):
+            hi = min(a + block, n - 4)
+            bad[a + 2:hi + 2] |= _spikes(t[a:hi + 4], TIME_SPIKE_TOL_S)
+    for i in sorted({i for i in (0, 1, n - 2, n - 1) if 0 <= i < n}):
+        neigh = sorted(float(t[j]) for j in range(max(0, i - 2), min(n, i + 3)) if j != i)
+        if neigh:
+            m1, m2 = neigh[(len(neigh) - 1) // 2], neigh[len(neigh) // 2]
+            bad[i] |= abs(float(t[i]) - 0.5 * (m1 + m2)) > TIME_SPIKE_TOL_END_S + abs(m2 - m1)
     n_bad = int(bad.sum())
     if n_bad:
         good_idx = np.where(bad, -1, np.arange(n))
         last_good = np.maximum.accumulate(good_idx)
-        if (last_good < 0).any():  # leading bad records take the first good time
-            first_good = np.flatnonzero(~bad)
-            last_good[last_good < 0] = first_good[0] if len(first_good) else 0
+        first_good = np.flatnonzero(~bad)
+        last_good[last_good < 0] = first_good[0] if len(first_good) else 0
         t = t[last_good]
     return t, n_bad
 
@@ -479,42 +607,60 @@ def _decode_chars(col: np.ndarray, as_str: bool) -> np.ndarray:
 
 def _decode_fast(buf: np.ndarray, lay: MessageLayout, payload_at: np.ndarray,
                  plen: np.ndarray) -> dict[str, np.ndarray]:
-    """Columns of ``lay``'s messages whose payloads start at ``payload_at`` (lengths
-    ``plen``; shorter than the wire size means truncated trailing zeros, longer is cut)."""
+    """Columns of ``lay``'s messages whose payloads start at ``payload_at`` with lengths
+    ``plen`` (shorter than the wire size: truncated trailing zeros; longer: cut, as pymavlink
+    does). Arrays (n,) or (n, k) in the wire dtypes; char[N] as object arrays. Works in
+    blocks of rows so each block's bytes stay in the CPU caches while its fields are copied."""
     assert lay.dtype is not None
     size = lay.size
-    rows = sliding_window_view(buf, size)[payload_at]  # (n, size) copy
-    short = np.flatnonzero(plen < size)
-    if len(short):
-        keep = np.arange(size) < plen[short, None]
-        rows[short] = np.where(keep, rows[short], 0)
-    rec = rows.view(lay.dtype).reshape(-1)
-    fields: dict[str, np.ndarray] = {}
-    for name in lay.fieldnames:
-        if name in lay.char_fields:
-            fields[name] = _decode_chars(rec[name], lay.char_as_str)
-        else:
-            fields[name] = np.ascontiguousarray(rec[name])
-    return fields
+    n = len(payload_at)
+    numeric = [name for name in lay.fieldnames if name not in lay.char_fields]
+    out: dict[str, np.ndarray] = {}
+    for name in numeric:
+        sub = lay.dtype.fields[name][0]  # type: ignore[index]
+        out[name] = np.empty((n, *sub.shape), dtype=sub.base.newbyteorder("="))
+    chars: dict[str, list[np.ndarray]] = {name: [] for name in lay.char_fields}
+    block = max(1, _DECODE_BLOCK_BYTES // size)
+    cut = np.arange(size, dtype=np.int16)
+    for a in range(0, n, block):
+        rows = gather_rows(buf, payload_at[a:a + block], size)
+        length = plen[a:a + block]
+        if (length < size).any():
+            rows *= cut < length[:, None]
+        rec = rows.view(lay.dtype).reshape(-1)
+        for name in numeric:
+            out[name][a:a + block] = rec[name]
+        for name, parts in chars.items():
+            parts.append(rec[name].copy())
+    for name, parts in chars.items():
+        out[name] = _decode_chars(np.concatenate(parts), lay.char_as_str)
+    return {name: out[name] for name in lay.fieldnames}
+
+
+_MAVLINK_TYPES = {"int8_t": "i1", "uint8_t": "u1", "int16_t": "i2", "uint16_t": "u2", "int32_t": "i4",
+                  "uint32_t": "u4", "int64_t": "i8", "uint64_t": "u8", "float": "f4", "double": "f8"}
 
 
 def _decode_pymavlink(buf: np.ndarray, lay: MessageLayout, s: np.ndarray,
                       end: np.ndarray) -> dict[str, np.ndarray]:
-    """Columns of ``lay``'s packets ``[s, end)`` decoded one by one with pymavlink."""
+    """Columns of ``lay``'s packets ``[s, end)`` decoded one by one with pymavlink, in the
+    dtypes the message definition gives (``fieldtypes``); char[N] as object arrays."""
     mav = mavlink2.MAVLink(None)
     values: dict[str, list[Any]] = {name: [] for name in lay.fieldnames}
     for a, e in zip(s.tolist(), end.tolist(), strict=True):
         msg = mav.decode(bytearray(buf[a:e].tobytes()))
         for name in lay.fieldnames:
             values[name].append(getattr(msg, name))
+    types = dict(zip(lay.cls.fieldnames, lay.cls.fieldtypes, strict=True))  # type: ignore[attr-defined]
     fields = {}
     for name, vals in values.items():
-        if vals and isinstance(vals[0], str | bytes):
+        code = _MAVLINK_TYPES.get(types[name].removesuffix("_mavlink_version"))
+        if code is None:  # char[N] and anything else: as pymavlink gives it
             col = np.empty(len(vals), dtype=object)
             col[:] = vals
             fields[name] = col
         else:
-            fields[name] = np.asarray(vals)
+            fields[name] = np.array(vals, dtype=code)
     return fields
 
 
@@ -531,7 +677,8 @@ def _unknown_fields(buf: np.ndarray, s: np.ndarray, end: np.ndarray) -> dict[str
 def _load(path: Path) -> tuple[np.ndarray, int]:
     """The file's bytes in a zero-padded uint8 array, and the file length."""
     n_bytes = path.stat().st_size
-    buf = np.zeros(n_bytes + _PAD, dtype=np.uint8)
+    buf = np.empty(n_bytes + _PAD, dtype=np.uint8)
+    buf[n_bytes:] = 0
     with open(path, "rb") as f:
         got = f.readinto(memoryview(buf)[:n_bytes])
     if got != n_bytes:
@@ -540,18 +687,23 @@ def _load(path: Path) -> tuple[np.ndarray, int]:
 
 
 class _Progress:
-    """A tqdm bar on stderr over the reader's stages, or nothing."""
+    """A tqdm bar on stderr in percent of the work (scan 60, repairs 10, decoding 30), or
+    nothing when disabled."""
 
-    def __init__(self, enabled: bool, total: int, desc: str) -> None:
+    def __init__(self, enabled: bool, desc: str) -> None:
         self.bar = None
+        self.done = 0.0
         if enabled:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=total, desc=desc, unit="step", file=sys.stderr, leave=False)
+            self.bar = tqdm(total=100, desc=desc, unit="%", file=sys.stderr, leave=False,
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]")
 
-    def update(self, n: int = 1) -> None:
+    def advance(self, percent: float) -> None:
         if self.bar is not None:
-            self.bar.update(n)
+            step = min(percent, 100.0 - self.done)
+            self.done += step
+            self.bar.update(step)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -559,66 +711,64 @@ class _Progress:
 
 
 def _find_packets(buf: np.ndarray, n_bytes: int, progress: _Progress
-                  ) -> tuple[_Candidates, np.ndarray, _Damage]:
-    """The good packets of the file, sorted by position, whether each one's time header
-    overlaps the packet before, and the damage found."""
-    _, extra_tab = _crc_extra_lookup()
-    table = layouts()
-    checkable_parts = []
-    checked_parts = []
+                  ) -> tuple[_Packets, np.ndarray, _Damage]:
+    """The good packets of the file, sorted by position; whether each one's time header
+    overlaps the packet before (its time is then unreliable); and the damage found."""
+    known_tab, extra_tab = _crc_extra_lookup()
+
+    def check(c: _Packets) -> _Packets:
+        covered = c.hdr.astype(np.int16) - 1 + c.plen
+        return c.where(_check_crc(buf, c.s, covered, extra_tab[c.msgid]))
+
+    # pass 1: candidates that sit in an unbroken record chain, chunk by chunk
+    good_parts = []
+    other_parts = []
+    n_chunks = max(1, -(-(n_bytes - TIME_HEADER_LEN) // _SCAN_CHUNK))
     for s in _find_stx(buf, n_bytes):
-        cand = _parse_headers(buf, s)
-        end = cand.end
-        nxt = end + TIME_HEADER_LEN
-        follows = (buf[np.minimum(nxt, n_bytes)] - np.uint8(STX_V2)) < 2
-        chained = (end == n_bytes) | ((nxt < n_bytes) & follows)
-        ok = cand.known & cand.flags_ok & (end <= n_bytes)
-        checked_parts.append(cand.subset(np.flatnonzero(ok & chained)))
-        checkable_parts.append(cand.subset(np.flatnonzero(ok & ~chained)))
-    progress.update()
+        progress.advance(60.0 / n_chunks)
+        # a first, cheap look: does the record chain go on for two more records from here?
+        end = _claimed_end(buf, s)
+        fits = end <= n_bytes
+        nxt = np.minimum(end + TIME_HEADER_LEN, n_bytes)  # the padding after n_bytes is zero
+        end2 = _claimed_end(buf, nxt)
+        chained = (end == n_bytes) | (
+            _is_stx(buf[nxt]) & ((end2 == n_bytes) | _is_stx(buf[np.minimum(end2 + TIME_HEADER_LEN, n_bytes)])))
+        cand, ok = _parse_headers(buf, s[chained & fits])
+        good_parts.append(check(cand.where(ok)))
+        other_parts.append(s[~chained & fits])
+    good = _Packets.concat(good_parts)
+    del good_parts
+    good = good.where(_non_overlapping(good.s, good.end))
 
-    def cat(parts: list[_Candidates]) -> _Candidates:
-        return _Candidates(*(np.concatenate([getattr(p, f) for p in parts]) if parts
-                             else np.zeros(0, dtype=np.int64)
-                             for f in ("s", "hdr", "plen", "total", "msgid", "known", "flags_ok")))
-
-    # pass 1: candidates that sit in an unbroken record chain
-    first = cat(checked_parts)
-    del checked_parts
-    good = _check_crc(buf, first.s, first.hdr, first.plen, extra_tab[first.msgid])
-    first = first.subset(np.flatnonzero(good))
-    first = first.subset(np.flatnonzero(_non_overlapping(first.s, first.end)))
-    progress.update()
-
-    # pass 2: every other checkable candidate whose body lies in a gap between records
-    gap_a, gap_b = _gaps(first.s, first.end, n_bytes)
+    # pass 2: every other candidate whose body lies between the bodies of the packets found
+    # (its time header may overlap the packet before; the next one's may overlap it)
+    gap_a, gap_b = _gaps(good.s, good.end, n_bytes, header=0)
     if len(gap_a):
-        rest = cat(checkable_parts)
-        gi = np.searchsorted(gap_a, rest.s, side="right") - 1
-        inside = (gi >= 0) & (rest.end <= gap_b[np.maximum(gi, 0)])
-        rest = rest.subset(np.flatnonzero(inside))
-        good = _check_crc(buf, rest.s, rest.hdr, rest.plen, extra_tab[rest.msgid])
-        rest = rest.subset(np.flatnonzero(good))
-        rest = rest.subset(np.flatnonzero(_non_overlapping(rest.s, rest.end)))
-        order = np.argsort(np.concatenate((first.s, rest.s)), kind="stable")
-        first = cat([first, rest]).subset(order)
-    del checkable_parts
+        rest_s = np.concatenate(other_parts) if other_parts else np.zeros(0, dtype=np.int64)
+        gi = np.searchsorted(gap_a, rest_s, side="right") - 1
+        rest, ok = _parse_headers(buf, rest_s[gi >= 0])
+        gi = gi[gi >= 0]
+        rest = check(rest.where(ok & (rest.end <= gap_b[gi])))
+        rest = rest.where(_non_overlapping(rest.s, rest.end))
+        order = np.argsort(np.concatenate((good.s, rest.s)), kind="stable")
+        good = _Packets.concat([good, rest]).subset(order)
+    del other_parts, gap_a, gap_b
+    progress.advance(5.0)
 
-    # what is left between the records: walk the expected record chain through each gap
+    # what is left between the records: follow the expected record chain through each gap
     damage = _Damage()
     unknown: list[int] = []
-    gap_a, gap_b = _gaps(first.s, first.end, n_bytes)
+    gap_a, gap_b = _gaps(good.s, good.end, n_bytes)
     for a, b in zip(gap_a.tolist(), gap_b.tolist(), strict=True):
         walk = _walk_gap(buf, a, b, n_bytes)
         # packets of ids the dialect does not define: kept where they fill the gap exactly
         if (walk.records and not walk.truncated and walk.records[-1][1] == b
-                and all(ok and table.get(mid) is None for _, _, mid, ok in walk.records)):
+                and all(ok and not known_tab[min(mid, len(known_tab) - 1)] for _, _, mid, ok in walk.records)):
             unknown.extend(p for p, _, _, _ in walk.records)
             continue
         damage.damaged_packets += len(walk.records)
         damage.damaged_bytes += walk.spanned
-        if walk.truncated:
-            damage.truncated_bytes += walk.truncated
+        damage.truncated_bytes += walk.truncated
         if walk.garbage:
             damage.garbage_bytes += walk.garbage
             damage.garbage_places += 1
@@ -626,36 +776,77 @@ def _find_packets(buf: np.ndarray, n_bytes: int, progress: _Progress
                 damage.first_garbage_at = a + walk.spanned
     if unknown:
         damage.unknown_packets = len(unknown)
-        extra = _parse_headers(buf, np.array(unknown, dtype=np.int64))
-        order = np.argsort(np.concatenate((first.s, extra.s)), kind="stable")
-        first = cat([first, extra]).subset(order)
-    progress.update()
+        extra, _ = _parse_headers(buf, np.array(unknown, dtype=np.int64))
+        order = np.argsort(np.concatenate((good.s, extra.s)), kind="stable")
+        good = _Packets.concat([good, extra]).subset(order)
+    progress.advance(5.0)
 
-    overlapped = np.zeros(len(first.s), dtype=bool)
-    overlapped[1:] = first.s[1:] - TIME_HEADER_LEN < first.end[:-1]
-    return first, overlapped, damage
+    overlapped = np.zeros(len(good.s), dtype=bool)
+    overlapped[1:] = good.s[1:] - TIME_HEADER_LEN < good.end[:-1]
+    return good, overlapped, damage
 
 
-def _notes(damage: _Damage, backwards: int, back_max_s: float,
-           repaired_times: int) -> list[str]:
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" + ("" if n == 1 else "s")
+
+
+def _notes(damage: _Damage, backwards: int, back_max_s: float, repaired_times: int) -> list[str]:
+    """One line per kind of damage found while reading."""
     notes = []
     if damage.damaged_packets:
-        notes.append(f"skipped {damage.damaged_bytes} bytes: {damage.damaged_packets} damaged packets "
+        notes.append(f"skipped {damage.damaged_bytes} bytes: {_plural(damage.damaged_packets, 'damaged packet')} "
                      "(bad CRC or header)")
     if damage.garbage_bytes:
         notes.append(f"skipped {damage.garbage_bytes} bytes of unrecognisable data in "
-                     f"{damage.garbage_places} places (the first at byte {damage.first_garbage_at})")
+                     f"{_plural(damage.garbage_places, 'place')} (the first at byte {damage.first_garbage_at})")
     if damage.truncated_bytes:
         notes.append(f"skipped {damage.truncated_bytes} bytes: truncated last record")
     if damage.unknown_packets:
-        notes.append(f"kept {damage.unknown_packets} packets of message ids the ardupilotmega dialect "
-                     "does not define as UNKNOWN_<id> (CRC not checkable)")
+        notes.append(f"kept {_plural(damage.unknown_packets, 'packet')} of message ids the ardupilotmega "
+                     "dialect does not define as UNKNOWN_<id> (CRC not checkable)")
     if repaired_times:
-        notes.append(f"{repaired_times} records had a damaged timestamp: given the previous record's time")
+        notes.append(f"{_plural(repaired_times, 'record')} had a damaged timestamp: given the previous "
+                     "record's time")
     if backwards:
-        notes.append(f"{backwards} records are timestamped earlier than the record before them "
-                     f"(by up to {back_max_s:.3f} s); kept in file order")
+        notes.append(f"{_plural(backwards, 'record')} timestamped earlier than the record before "
+                     f"(by up to {back_max_s:.3f} s): kept in file order")
     return notes
+
+
+def _tables(buf: np.ndarray, pk: _Packets, t_s: np.ndarray, progress: _Progress
+            ) -> dict[str, MessageTable]:
+    """One MessageTable per message type, in order of first appearance."""
+    # group by message id (a dense 16-bit code, so the stable sort is a radix sort)
+    ids = np.array(sorted(mavlink2.mavlink_map), dtype=np.int64)
+    code_tab = np.full(int(ids[-1]) + 2, len(ids), dtype=np.uint16)
+    code_tab[ids] = np.arange(len(ids), dtype=np.uint16)
+    code = code_tab[np.minimum(pk.msgid, len(code_tab) - 1)]
+    order = np.argsort(code, kind="stable")
+    groups = np.split(order, np.flatnonzero(np.diff(code[order])) + 1)
+    del order, code
+    if int(pk.msgid[groups[-1][0]]) not in mavlink2.mavlink_map:  # unknown ids, one by one
+        unknown = groups.pop()
+        for mid in np.unique(pk.msgid[unknown]).tolist():
+            groups.append(unknown[pk.msgid[unknown] == mid])
+    groups.sort(key=lambda g: int(g[0]))
+    tables: dict[str, MessageTable] = {}
+    for idx in groups:
+        mid = int(pk.msgid[idx[0]])
+        s = pk.s[idx]
+        lay = layout_of(mid)
+        if lay is None:
+            name = f"UNKNOWN_{mid}"
+            fields = _unknown_fields(buf, s, s + pk.total[idx])
+        elif lay.dtype is None:
+            name = lay.name
+            fields = _decode_pymavlink(buf, lay, s, s + pk.total[idx])
+        else:
+            name = lay.name
+            fields = _decode_fast(buf, lay, s + pk.hdr[idx], pk.plen[idx])
+        progress.advance(30.0 * len(idx) / len(pk.s))
+        tables[name] = MessageTable(name=name, t_s=t_s[idx], sysid=pk.sysid[idx], compid=pk.compid[idx],
+                                    record=idx.astype(np.int64, copy=False), fields=fields)
+    return tables
 
 
 def read_tlog(path: str | Path, *, progress: bool = False) -> Recording:
@@ -664,62 +855,32 @@ def read_tlog(path: str | Path, *, progress: bool = False) -> Recording:
     ``t_s``: the record header's UNIX time, s (µs / 1e6); ``record``: index of the packet
     among the file's good packets (0..N-1, file order); ``sysid``/``compid``: from the packet
     header. Damaged bytes are skipped: ``skipped_bytes`` counts every byte not in a good
-    record, ``skipped_packets`` the packets lost (CRC or header check failed at a record
-    position, or the last record truncated); ``notes`` has one line per kind of damage.
-    ``progress``: show a tqdm bar on stderr for files over ``PROGRESS_MIN_BYTES``.
-    Raises RecordingError when the file holds no good MAVLink packet.
+    record; ``skipped_packets`` the packets lost (CRC or header check failed where the record
+    chain expected a packet, or the last record truncated); ``notes`` has one line per kind of
+    damage. A record whose time header is damaged keeps its packet and takes the previous
+    record's time (noted). ``progress``: a tqdm bar on stderr for files over
+    ``PROGRESS_MIN_BYTES``. Raises RecordingError when the file holds no good MAVLink packet.
     """
     p = Path(path)
     if not p.is_file():
         raise RecordingError(f"recording not found: {p}")
     buf, n_bytes = _load(p)
-    table = layouts()
-    bar = _Progress(progress and n_bytes > PROGRESS_MIN_BYTES, 4, f"reading {p.name}")
+    bar = _Progress(progress and n_bytes > PROGRESS_MIN_BYTES, f"reading {p.name}")
     try:
         pk, overlapped, damage = _find_packets(buf, n_bytes, bar)
-        n = len(pk.s)
-        if n == 0:
+        if len(pk.s) == 0:
             raise RecordingError(f"no MAVLink packets found in {p}")
-        t_us = sliding_window_view(buf, TIME_HEADER_LEN)[pk.s - TIME_HEADER_LEN].copy().view(">u8").reshape(-1)
-        t_s, repaired = _repair_times(t_us, overlapped)
-        del t_us
+        t_s, repaired = _repair_times(pk.t_us, overlapped)
+        pk.t_us = np.zeros(0, dtype=np.uint64)  # no longer needed: free it before decoding
         steps = np.diff(t_s)
         backwards = int(np.count_nonzero(steps < 0))
         back_max = float(-steps.min()) if backwards else 0.0
         del steps
-        v2 = buf[pk.s] == STX_V2
-        sysid = np.where(v2, buf[pk.s + 5], buf[pk.s + 3])
-        compid = np.where(v2, buf[pk.s + 6], buf[pk.s + 4])
-        del v2
-
-        # group by message id, keeping file order inside each group
-        order = np.argsort(pk.msgid, kind="stable")
-        ids = pk.msgid[order]
-        bounds = np.flatnonzero(np.diff(ids)) + 1
-        groups = np.split(order, bounds)
-        groups.sort(key=lambda g: int(g[0]))  # tables in order of first appearance
-        tables: dict[str, MessageTable] = {}
-        for idx in groups:
-            mid = int(pk.msgid[idx[0]])
-            s = pk.s[idx]
-            lay = table.get(mid)
-            if lay is None:
-                name = f"UNKNOWN_{mid}"
-                fields = _unknown_fields(buf, s, s + pk.total[idx])
-            elif lay.dtype is None:
-                name = lay.name
-                fields = _decode_pymavlink(buf, lay, s, s + pk.total[idx])
-            else:
-                name = lay.name
-                fields = _decode_fast(buf, lay, s + pk.hdr[idx], pk.plen[idx])
-            tables[name] = MessageTable(name=name, t_s=t_s[idx], sysid=sysid[idx], compid=compid[idx],
-                                        record=idx.astype(np.int64), fields=fields)
-        bar.update()
+        tables = _tables(buf, pk, t_s, bar)
     finally:
         bar.close()
-
-    skipped_bytes = n_bytes - int(np.sum(pk.end - np.maximum(pk.s - TIME_HEADER_LEN,
-                                                             np.concatenate(([0], pk.end[:-1])))))
+    record_start = np.maximum(pk.s - TIME_HEADER_LEN, np.concatenate(([0], pk.end[:-1])))
+    skipped_bytes = n_bytes - int(np.sum(pk.end - record_start))
     return Recording(
         path=str(p), tables=tables, source_format="tlog",
         skipped_bytes=skipped_bytes,

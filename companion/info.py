@@ -1,0 +1,256 @@
+"""``python -m companion info RECORDING``: what a recording holds, at a glance.
+
+Duration, every message type with its count, rate and senders, the largest gaps in each
+stream, the sensors the companion and the analysis tools need (CONVENTIONS.md, "Recordings"),
+what the reader had to skip, and which sensor profile fits. ``--json OUT`` writes the same
+summary as JSON. Times are seconds from the first record of the recording.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.errors import FlowholdError, RecordingError
+from companion.recording import MessageTable, Recording, load_recording
+
+#: an interval longer than this many times the stream's median interval is a gap
+GAP_FACTOR = 3.0
+#: gaps listed per message type (the largest first)
+MAX_GAPS_LISTED = 5
+#: the rate is taken from intervals across this many messages (robust to bursty delivery)
+RATE_SPAN = 10
+#: a message type sent at least this often on average (Hz, per sender) is a stream: its gaps
+#: are listed (1 Hz heartbeats are streams; occasional STATUSTEXT or PARAM_VALUE are not)
+STREAM_MIN_HZ = 0.5
+#: DISTANCE_SENSOR orientation that measures altitude (MAV_SENSOR_ROTATION_PITCH_270, down)
+DOWNWARD = 25
+
+#: sensor role -> the messages that fill it (CONVENTIONS.md)
+SENSORS: dict[str, tuple[str, ...]] = {
+    "flow": ("OPTICAL_FLOW", "OPTICAL_FLOW_RAD"),
+    "gyro": ("RAW_IMU", "SCALED_IMU", "HIGHRES_IMU"),
+    "range": ("DISTANCE_SENSOR",),
+    "attitude": ("ATTITUDE",),
+    "commands": ("SET_ATTITUDE_TARGET", "ATTITUDE_TARGET"),
+    "truth": ("LOCAL_POSITION_NED",),
+}
+#: roles a recording needs for diagnosis (truth is optional)
+REQUIRED_FOR_DIAGNOSIS = ("flow", "gyro", "range", "attitude", "commands")
+
+
+def stream_timing(t_s: np.ndarray, t0_s: float) -> dict[str, Any]:
+    """Rate and gaps of one stream of message times ``t_s`` (s, file order).
+
+    ``median_interval_s``: the median over the stream of the mean interval across ``RATE_SPAN``
+    consecutive messages (one message to the next when there are fewer), so that a link that
+    delivers in bursts still gives the sender's rate while gaps barely move it; ``rate_hz`` is
+    its inverse (None with fewer than two messages or no time between them). ``gaps``: the
+    intervals longer than ``GAP_FACTOR`` x the median interval, largest first, each
+    ``{"start_s": time of the message before it, from t0_s, "duration_s"}``.
+    """
+    n = len(t_s)
+    t = np.asarray(t_s, dtype=np.float64)
+    if n < 2:
+        return {"rate_hz": None, "median_interval_s": None, "gaps": []}
+    k = min(RATE_SPAN, n - 1)
+    typical = float(np.median(t[k:] - t[:-k])) / k
+    if not typical > 0:
+        return {"rate_hz": None, "median_interval_s": typical, "gaps": []}
+    step = np.diff(t)
+    big = np.flatnonzero(step > GAP_FACTOR * typical)
+    big = big[np.argsort(-step[big], kind="stable")]
+    gaps = [{"start_s": float(t[i] - t0_s), "duration_s": float(step[i])} for i in big]
+    return {"rate_hz": 1.0 / typical, "median_interval_s": typical, "gaps": gaps}
+
+
+def _senders(tab: MessageTable) -> list[tuple[int, int]]:
+    pairs = np.unique(np.stack([tab.sysid.astype(np.int64), tab.compid.astype(np.int64)], axis=1), axis=0)
+    return [(int(a), int(b)) for a, b in pairs]
+
+
+def message_summary(tab: MessageTable, t0_s: float, duration_s: float) -> dict[str, Any]:
+    """Count, rate (Hz, summed over senders), mean rate over the recording's ``duration_s``,
+    senders and gaps (found per sender) of one message type. ``streamed``: sent at
+    ``STREAM_MIN_HZ`` or more on average, so its gaps mean something."""
+    senders = []
+    gaps = []
+    for sysid, compid in _senders(tab):
+        sub = tab.from_sender(sysid, compid)
+        timing = stream_timing(sub.t_s, t0_s)
+        senders.append({"sysid": sysid, "compid": compid, "count": len(sub), "rate_hz": timing["rate_hz"]})
+        gaps += [{**g, "sysid": sysid, "compid": compid} for g in timing["gaps"]]
+    gaps.sort(key=lambda g: -g["duration_s"])
+    rates = [s["rate_hz"] for s in senders if s["rate_hz"] is not None]
+    mean_hz = len(tab) / duration_s if duration_s > 0 else None
+    return {
+        "name": tab.name,
+        "count": len(tab),
+        "rate_hz": float(sum(rates)) if rates else None,
+        "mean_rate_hz": mean_hz,
+        "streamed": bool(mean_hz is not None and mean_hz >= STREAM_MIN_HZ * len(senders)),
+        "senders": senders,
+        "n_gaps": len(gaps),
+        "gaps": gaps[:MAX_GAPS_LISTED],
+    }
+
+
+def sensors_found(rec: Recording, duration_s: float) -> dict[str, Any]:
+    """Per sensor role, the messages present (count, rate); DISTANCE_SENSOR counts only the
+    downward-facing rows (orientation 25) and lists the orientations seen."""
+    t0 = rec.t0_s
+    found: dict[str, Any] = {}
+    for role, names in SENSORS.items():
+        items = []
+        for name in names:
+            if name not in rec:
+                continue
+            tab = rec.tables[name]
+            entry: dict[str, Any] = {"message": name}
+            if name == "DISTANCE_SENSOR" and "orientation" in tab.fields:
+                orient = np.asarray(tab["orientation"]).astype(np.int64)
+                entry["orientations"] = sorted(int(o) for o in np.unique(orient))
+                tab = tab.select(orient == DOWNWARD)
+                if len(tab) == 0:
+                    continue
+            entry["count"] = len(tab)
+            entry["rate_hz"] = message_summary(tab, t0, duration_s)["rate_hz"]
+            items.append(entry)
+        found[role] = items
+    return found
+
+
+def _profile(rec: Recording) -> dict[str, Any]:
+    from companion.profiles import detect_profile
+
+    try:
+        name, reason = detect_profile(rec)
+    except FlowholdError as exc:
+        return {"name": None, "reason": str(exc)}
+    return {"name": str(name), "reason": str(reason)}
+
+
+def summarise(rec: Recording) -> dict[str, Any]:
+    """The summary of a recording as a JSON-ready dict.
+
+    Keys: ``file``, ``format``, ``t0_s`` (log time of the first record), ``duration_s`` (first
+    to last record), ``n_messages``, ``skipped_bytes``, ``skipped_packets``, ``notes``,
+    ``messages`` (per type, most frequent first: ``count``, ``rate_hz`` (1 / median interval),
+    ``mean_rate_hz`` (count / duration), ``streamed``, ``senders``, ``n_gaps``, ``gaps``),
+    ``sensors`` (see ``sensors_found``), ``missing_for_diagnosis`` (roles with no message)
+    and ``profile`` (``name``, ``reason``).
+    Raises RecordingError if the recording holds no messages.
+    """
+    if rec.n_messages == 0:
+        raise RecordingError(f"{Path(rec.path).name}: the recording holds no messages")
+    t0 = rec.t0_s
+    duration = max(float(np.max(t.t_s)) for t in rec if len(t)) - t0
+    messages = [message_summary(t, t0, duration) for t in rec if len(t)]
+    messages.sort(key=lambda m: (-m["count"], m["name"]))
+    sensors = sensors_found(rec, duration)
+    return {
+        "file": str(rec.path),
+        "format": rec.source_format,
+        "t0_s": t0,
+        "duration_s": duration,
+        "n_messages": rec.n_messages,
+        "skipped_bytes": int(rec.skipped_bytes),
+        "skipped_packets": int(rec.skipped_packets),
+        "notes": list(rec.notes),
+        "messages": messages,
+        "sensors": sensors,
+        "missing_for_diagnosis": [r for r in REQUIRED_FOR_DIAGNOSIS if not sensors[r]],
+        "profile": _profile(rec),
+    }
+
+
+def _hz(rate: float | None) -> str:
+    if rate is None:
+        return "-"
+    return f"{rate:.1f}" if rate >= 0.95 else f"{rate:.3f}"
+
+
+def _start(t0_s: float, fmt: str) -> str:
+    if fmt == "tlog" and 1e9 < t0_s < 4e9:  # a UNIX time
+        return dt.datetime.fromtimestamp(t0_s, tz=dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+    return f"log time {t0_s:.3f} s"
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    """``summarise``'s dict as the readable report ``info`` prints."""
+    lines = [
+        f"file      {s['file']}",
+        f"format    {s['format']}",
+        f"duration  {s['duration_s']:.1f} s, {s['n_messages']} messages, starting {_start(s['t0_s'], s['format'])}",
+        f"skipped   {s['skipped_bytes']} bytes, {s['skipped_packets']} packets",
+    ]
+    lines += [f"note      {n}" for n in s["notes"]]
+    p = s["profile"]
+    lines.append(f"profile: {p['name'] or 'none'} ({p['reason']})")
+    lines.append("")
+    width = max([len(m["name"]) for m in s["messages"]] + [7])
+    lines.append(f"{'message':<{width}}  {'count':>8}  {'rate Hz':>8}  {'mean Hz':>8}  {'gaps':>4}  "
+                 "senders (sysid/compid)")
+    for m in s["messages"]:
+        senders = ", ".join(
+            f"{x['sysid']}/{x['compid']}" + (f" {x['count']} @ {_hz(x['rate_hz'])} Hz" if len(m["senders"]) > 1 else "")
+            for x in m["senders"])
+        n_gaps = str(m["n_gaps"]) if m["streamed"] else "-"
+        lines.append(f"{m['name']:<{width}}  {m['count']:>8}  {_hz(m['rate_hz']):>8}  "
+                     f"{_hz(m['mean_rate_hz']):>8}  {n_gaps:>4}  {senders}")
+    lines.append(f"(rate: 1 / median interval; mean: count / duration; gaps: intervals > {GAP_FACTOR:g}x the "
+                 f"median, counted for streams of {STREAM_MIN_HZ:g} Hz or more)")
+    gaps = [(g["duration_s"], m["name"], g) for m in s["messages"] if m["streamed"] for g in m["gaps"]]
+    gaps.sort(key=lambda x: -x[0])
+    lines.append("")
+    if gaps:
+        lines.append("largest gaps in the streams (s from the first record):")
+        for dur, name, g in gaps[:10]:
+            lines.append(f"  {name} from {g['sysid']}/{g['compid']}: {dur:.3f} s at {g['start_s']:.3f} s")
+    else:
+        lines.append("no gaps in the streams")
+    lines.append("")
+    lines.append("sensors:")
+    for role, items in s["sensors"].items():
+        if not items:
+            text = "none"
+        else:
+            parts = []
+            for it in items:
+                extra = ""
+                if it["message"] == "DISTANCE_SENSOR":
+                    extra = f" facing down (orientations seen: {', '.join(map(str, it['orientations']))})"
+                parts.append(f"{it['message']}{extra}: {it['count']} @ {_hz(it['rate_hz'])} Hz")
+            text = "; ".join(parts)
+        lines.append(f"  {role:<9} {text}")
+    missing = s["missing_for_diagnosis"]
+    lines.append(f"missing for diagnosis: {', '.join(missing) if missing else 'nothing'}")
+    return "\n".join(lines)
+
+
+def _json_ready(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _json_ready(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_json_ready(v) for v in x]
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def run_cli(args: argparse.Namespace) -> int:
+    """``info``: print the summary of ``args.recording``; ``args.json``: also write it there."""
+    rec = load_recording(args.recording, sensor_config=getattr(args, "sensor_config", None))
+    summary = summarise(rec)
+    print(format_summary(summary))
+    if getattr(args, "json", None):
+        Path(args.json).write_text(json.dumps(_json_ready(summary), indent=2) + "\n")
+    return 0
