@@ -94,14 +94,20 @@ class HoldCause(enum.StrEnum):
     RANGE_INVALID = "range outside sensor limits"
     LINK = "link lost"
     DISENGAGED = "vehicle not in the companion's mode"
+    VELOCITY_JUMP = "velocity jump"
+    FLOW_FROZEN = "flow frozen"
+    GYRO_FROZEN = "gyro frozen"
 
 
 #: hold causes by the integer code the column functions use (0 = none), in gate precedence order
 CAUSE_CODES: tuple[HoldCause, ...] = (
     HoldCause.NONE, HoldCause.FLOW_INVALID, HoldCause.FLOW_QUALITY, HoldCause.GYRO_MISSING,
     HoldCause.GYRO_INVALID, HoldCause.RANGE_MISSING, HoldCause.RANGE_INVALID, HoldCause.RANGE_STALE,
-    HoldCause.FLOW_SPIKE, HoldCause.DISENGAGED)
+    HoldCause.FLOW_SPIKE, HoldCause.DISENGAGED, HoldCause.VELOCITY_JUMP, HoldCause.FLOW_FROZEN,
+    HoldCause.GYRO_FROZEN)
 _CODE = {c: i for i, c in enumerate(CAUSE_CODES)}
+#: the causes found by comparing a frame with the ones before it (``Plausibility``)
+CROSS_FRAME_CAUSES = (HoldCause.VELOCITY_JUMP, HoldCause.FLOW_FROZEN, HoldCause.GYRO_FROZEN)
 
 
 class GyroSource(enum.StrEnum):
@@ -539,6 +545,149 @@ def run_control(pi: tuple[float, float], filt: FilterState, usable: np.ndarray, 
 
 
 # ---------------------------------------------------------------------------------------------
+# 4. Checks across frames (what one frame cannot show)
+
+
+#: the estimate may move by the flow of this many counts per frame beyond what the vehicle can
+#: accelerate (quantization and sensor noise) before a frame is an outlier
+JUMP_NOISE_COUNTS = 8.0
+#: an outlier lasting more than this many frames is a real change: the estimate re-anchors on it
+JUMP_HOLD_FRAMES = 3
+#: a sensor repeating the same values this long (s) while the vehicle turns has stopped seeing
+FROZEN_WINDOW_S = 0.5
+#: ... "turns": the rotation rate spans this many counts of flow per frame across the window
+FROZEN_ROTATION_COUNTS = 3.0
+
+
+@dataclass(frozen=True)
+class PlausibilityParams:
+    """Bounds of the cross-frame checks (SI units), bound once from a ``Config``.
+
+    ``max_accel_m_s2``: the fastest the vehicle can change its velocity, twice ``g tan(tilt
+    limit)`` (the tilt limit's acceleration, and as much again for wind and transients).
+    ``jump_noise_rad_s``: ``JUMP_NOISE_COUNTS`` counts per frame as a scene rate.
+    ``frozen_frames``: ``FROZEN_WINDOW_S`` in frames. ``frozen_rotation_rad_s``:
+    ``FROZEN_ROTATION_COUNTS`` counts per frame as a body rate.
+    """
+
+    max_accel_m_s2: float
+    jump_noise_rad_s: float
+    jump_hold_frames: int
+    frozen_frames: int
+    frozen_rotation_rad_s: float
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> PlausibilityParams:
+        t = cfg.flow_sensor.frame_period_s
+        q = cfg.flow_sensor.q_rad_per_count
+        return cls(max_accel_m_s2=2.0 * cfg.airframe.gravity_m_s2 * math.tan(cfg.controller.tilt_limit_rad),
+                   jump_noise_rad_s=JUMP_NOISE_COUNTS * q / t, jump_hold_frames=JUMP_HOLD_FRAMES,
+                   frozen_frames=max(2, round(FROZEN_WINDOW_S / t)),
+                   frozen_rotation_rad_s=FROZEN_ROTATION_COUNTS * q / t)
+
+
+def _span(values: deque[float]) -> float:
+    return max(values) - min(values) if values else 0.0
+
+
+class Plausibility:
+    """What one frame cannot show, checked across frames (pure: times come with the frames).
+
+    - **velocity jump**: eq. 15's estimate moved further from the last accepted one than the
+      vehicle can accelerate in the time between (``max_accel_m_s2 * dt``) plus the flow noise
+      at the lower of the two ranges (``jump_noise_rad_s * range``): a flow spike below the
+      sensor's limit, a one-reading range or gyro glitch. Such a frame is held (level, integrator
+      frozen) instead of kicking the vehicle; a change that lasts more than ``jump_hold_frames``
+      frames is real, and the estimate re-anchors on it.
+    - **flow frozen**: the same flow values, frame after frame with the time advancing, for
+      ``frozen_frames`` frames while the gyro's rate spans more than ``frozen_rotation_rad_s``
+      across them: a working sensor would have seen that rotation (eq. 15's ``omega`` term). Held
+      until the values change. Without rotation a frozen sensor cannot be told from steady flight.
+    - **gyro frozen**: the same gyro rates for ``frozen_frames`` frames while the autopilot's own
+      ATTITUDE rates span more than ``frozen_rotation_rad_s``. Held until the rates change.
+    """
+
+    def __init__(self, params: PlausibilityParams) -> None:
+        self.p = params
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the history (when the vehicle's clock restarts)."""
+        self.anchor: tuple[float, float, float, float] | None = None  # (time s, vx, vy, range m) accepted
+        self.rejected = 0
+        self._flow_value: tuple[float, float] | None = None
+        self._flow_rot: tuple[deque[float], deque[float]] = (deque(maxlen=self.p.frozen_frames),
+                                                               deque(maxlen=self.p.frozen_frames))
+        self.flow_frozen: tuple[float, float] | None = None
+        self._gyro_value: tuple[float, float] | None = None
+        self._att_rot: tuple[deque[float], deque[float]] = (deque(maxlen=self.p.frozen_frames),
+                                                              deque(maxlen=self.p.frozen_frames))
+        self.gyro_frozen: tuple[float, float] | None = None
+
+    def check(self, time_s: float, flow_xy: tuple[float, float], gyro_rad_s: tuple[float, float],
+              v_m_s: tuple[float, float], range_m: float,
+              attitude_rate_rad_s: tuple[float, float] | None) -> HoldCause | None:
+        """The cause to hold this frame for, or None. ``flow_xy``: the frame's flow values as
+        the message carries them (increments or rates); ``gyro_rad_s``: (roll rate, pitch rate)
+        used for the frame; ``v_m_s``: eq. 15's estimate; ``attitude_rate_rad_s``: the latest
+        ATTITUDE (rollspeed, pitchspeed), None without one. Call only for frames the core used."""
+        if self.anchor is not None and time_s < self.anchor[0]:
+            self.reset()  # the clock went back (reboot)
+        frozen = self._frozen_flow(flow_xy, gyro_rad_s)
+        frozen_gyro = self._frozen_gyro(gyro_rad_s, attitude_rate_rad_s)
+        if frozen or frozen_gyro:
+            return HoldCause.FLOW_FROZEN if frozen else HoldCause.GYRO_FROZEN
+        return self._jump(time_s, v_m_s, range_m)
+
+    def _frozen_flow(self, flow_xy: tuple[float, float], gyro: tuple[float, float]) -> bool:
+        if self.flow_frozen is not None:
+            if flow_xy == self.flow_frozen:
+                return True
+            self.flow_frozen = None
+        rx, ry = self._flow_rot
+        if flow_xy != self._flow_value:
+            self._flow_value = flow_xy
+            rx.clear()
+            ry.clear()
+        rx.append(-gyro[1])  # the rotation part of eq. 15 on each axis
+        ry.append(gyro[0])
+        if len(rx) == rx.maxlen and max(_span(rx), _span(ry)) > self.p.frozen_rotation_rad_s:
+            self.flow_frozen = flow_xy
+            return True
+        return False
+
+    def _frozen_gyro(self, gyro: tuple[float, float], att: tuple[float, float] | None) -> bool:
+        if self.gyro_frozen is not None:
+            if gyro == self.gyro_frozen:
+                return True
+            self.gyro_frozen = None
+        ax, ay = self._att_rot
+        if gyro != self._gyro_value or att is None:
+            self._gyro_value = gyro
+            ax.clear()
+            ay.clear()
+        if att is None:
+            return False
+        ax.append(att[0])
+        ay.append(att[1])
+        if len(ax) == ax.maxlen and max(_span(ax), _span(ay)) > self.p.frozen_rotation_rad_s:
+            self.gyro_frozen = gyro
+            return True
+        return False
+
+    def _jump(self, time_s: float, v: tuple[float, float], range_m: float) -> HoldCause | None:
+        if self.anchor is not None:
+            t0, vx0, vy0, r0 = self.anchor
+            allowed = self.p.max_accel_m_s2 * (time_s - t0) + self.p.jump_noise_rad_s * min(range_m, r0)
+            if max(abs(v[0] - vx0), abs(v[1] - vy0)) > allowed and self.rejected < self.p.jump_hold_frames:
+                self.rejected += 1
+                return HoldCause.VELOCITY_JUMP
+        self.anchor = (time_s, v[0], v[1], range_m)
+        self.rejected = 0
+        return None
+
+
+# ---------------------------------------------------------------------------------------------
 # The stateful wrapper the live loop and the scenarios drive
 
 
@@ -559,6 +708,8 @@ class CompanionCore:
         self._gyro: deque[tuple[float, float, float]] = deque(maxlen=GYRO_HISTORY)
         self._range: tuple[float, float] | None = None  # (time_s, range_m) of the latest reading
         self._attitude: tuple[float, float, float] | None = None  # (time_s, roll, pitch)
+        self._attitude_rate: tuple[float, float] | None = None  # the latest finite (rollspeed, pitchspeed)
+        self.plausible = Plausibility(PlausibilityParams.from_config(cfg))
         self._last_payload: tuple[float, ...] | None = None
         self._last_used_time_s = math.nan
         self.engaged = True
@@ -575,9 +726,13 @@ class CompanionCore:
     def on_range(self, time_s: float, range_m: float) -> None:
         self._range = (time_s, range_m)
 
-    def on_attitude(self, time_s: float, roll_rad: float, pitch_rad: float) -> None:
-        """The autopilot's attitude estimate (ATTITUDE), for the optional tilt filter."""
+    def on_attitude(self, time_s: float, roll_rad: float, pitch_rad: float, roll_rate_rad_s: float = math.nan,
+                    pitch_rate_rad_s: float = math.nan) -> None:
+        """The autopilot's attitude estimate (ATTITUDE): the angles for the optional tilt filter,
+        the rates for the frozen-gyro check (``Plausibility``)."""
         self._attitude = (time_s, roll_rad, pitch_rad)
+        rates = (float(roll_rate_rad_s), float(pitch_rate_rad_s))
+        self._attitude_rate = rates if all(math.isfinite(r) for r in rates) else None
 
     def set_setpoint(self, vx_m_s: float, vy_m_s: float) -> None:
         """Body-frame velocity setpoint; non-finite values are ignored, each axis is clipped to
@@ -648,12 +803,20 @@ class CompanionCore:
         cause = gate_frame(f.time_s, f.scene_x, f.scene_y, f.quality, gyro_found, gx, gy, range_found, t_r, rng,
                            p=p)
         vx = vy = math.nan
+        raw: tuple[float, float] | None = None  # eq. 15 of a frame the cross-frame checks vetoed
         if cause is HoldCause.NONE:
             vx, vy, dt, rate_x, rate_y = self.sensor.update(f.time_s, f.scene_x, f.scene_y, f.increment,
                                                             f.integration_s, gx, gy, rng)
             if max(abs(rate_x), abs(rate_y)) > p.max_scene_rate_rad_s:
                 cause = HoldCause.FLOW_SPIKE
                 vx = vy = math.nan
+            else:  # what one frame cannot show: checked against the frames before
+                veto = self.plausible.check(f.time_s, (f.scene_x, f.scene_y), (gx, gy), (vx, vy), rng,
+                                            self._attitude_rate)
+                if veto is not None:
+                    cause = veto
+                    raw = (vx, vy)
+                    vx = vy = math.nan
         else:
             dt = p.nominal_frame_s
             if math.isfinite(f.time_s):
@@ -672,6 +835,7 @@ class CompanionCore:
         self.pi.state = PiState(*pi_state)
         if cause is HoldCause.NONE and not self.engaged:
             cause = HoldCause.DISENGAGED
-        out = StepOutput(f.time_s, dt, vx_f, vy_f, sx, sy, roll_cmd, pitch_cmd, cause, gx, gy, rng, vx, vy)
+        vx_raw, vy_raw = raw if raw is not None else (vx, vy)
+        out = StepOutput(f.time_s, dt, vx_f, vy_f, sx, sy, roll_cmd, pitch_cmd, cause, gx, gy, rng, vx_raw, vy_raw)
         self.last = out
         return out

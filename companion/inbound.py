@@ -76,7 +76,7 @@ class MessageRouter:
         elif mtype == "ATTITUDE":
             if math.isfinite(msg.yaw):
                 self.yaw_rad = msg.yaw
-            self.core.on_attitude(msg.time_boot_ms * 1e-3, msg.roll, msg.pitch)
+            self.core.on_attitude(msg.time_boot_ms * 1e-3, msg.roll, msg.pitch, msg.rollspeed, msg.pitchspeed)
         elif mtype == FLOW_MESSAGE[self.profile]:
             return self.core.on_flow(scalar_flow(msg, self.profile, self.core.cfg.flow_sensor.q_rad_per_count))
         return None

@@ -16,6 +16,8 @@ import hashlib
 import os
 import re
 import time
+import types
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -121,6 +123,87 @@ def setup_signing(mavobj: Any, key: bytes, *, unix_s: float | None = None, link_
     s.allow_unsigned_callback = None
     s.link_id = link_id
     s.timestamp = signing_timestamp(time.time() if unix_s is None else unix_s)
+    mavobj.check_signature = types.MethodType(_check_signature, mavobj)
+
+
+def _check_signature(mavobj: Any, msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+    """pymavlink's signature check, except that only a packet whose signature is good moves its
+    stream's replay timestamp on. (pymavlink 2.4.50 stores the timestamp before it compares the
+    signature, so one forged packet stamped in the future would lock a genuine sender out.)"""
+    streams = mavobj.signing.stream_timestamps
+    stream = (msgbuf[-13], src_system, src_component)
+    before = streams.get(stream)
+    ok = bool(type(mavobj).check_signature(mavobj, msgbuf, src_system, src_component))
+    if not ok:
+        if before is None:
+            streams.pop(stream, None)
+        else:
+            streams[stream] = before
+    return ok
+
+
+#: a received UDP datagram longer than this (bytes) is dropped unread: a MAVLink 2 packet is at
+#: most 280 bytes, and links batch packets up to an MTU (about 1500 bytes)
+MAX_DATAGRAM_IN = 8192
+#: BAD_DATA reason pymavlink gives a packet refused by signing (unsigned, wrong key, replayed)
+SIGNATURE_REJECTED = "Invalid signature"
+
+
+def bad_data_kind(msg: Any) -> str:
+    """The counter a BAD_DATA message goes to: a packet refused by MAVLink 2 signing, or
+    bytes that are not a valid packet (bad CRC, bad header, garbage)."""
+    if getattr(msg, "reason", "") == SIGNATURE_REJECTED:
+        return "packets rejected: unsigned or badly signed"
+    return "bad packets"
+
+
+def discard_partial(mavobj: Any) -> int:
+    """Forget the unfinished packet a parser holds at the end of a UDP datagram; returns the
+    number of bytes dropped.
+
+    A MAVLink packet never spans two datagrams, so bytes left over when a datagram has been
+    parsed are the start of a damaged or truncated packet. Left in the parser they would be
+    joined to the next datagram and cost its (good) packets too.
+    """
+    n = int(mavobj.buf_len())
+    if n:
+        mavobj.buf = bytearray()
+        mavobj.buf_index = 0
+        mavobj.expected_length = mav.HEADER_LEN_V1 + 2
+    return n
+
+
+def is_datagram_link(conn: Any) -> bool:
+    """Whether each read of ``conn`` is one whole UDP datagram (udpin/udpout/udp/udpbcast)."""
+    return isinstance(conn, mavutil.mavudp | mavutil.mavmcast)
+
+
+@dataclass(frozen=True)
+class Datagram:
+    """What one UDP datagram held: its messages (BAD_DATA included, in order), the bytes of an
+    unfinished packet dropped at its end, and whether it was dropped unread as oversized."""
+
+    messages: list[Any]
+    partial_bytes: int = 0
+    oversized: bool = False
+
+
+def read_datagram(conn: Any) -> Datagram | None:
+    """Read one datagram from a UDP pymavlink connection (None when none is waiting). A
+    datagram longer than ``MAX_DATAGRAM_IN`` is dropped unread. Messages are posted to the
+    connection as ``recv_msg`` does (its per-system state)."""
+    data = conn.recv()
+    if not data:
+        return None
+    if len(data) > MAX_DATAGRAM_IN:
+        return Datagram([], oversized=True)
+    if conn.first_byte:
+        conn.auto_mavlink_version(data)
+    msgs = conn.mav.parse_buffer(data) or []
+    dropped = discard_partial(conn.mav)
+    for m in msgs:
+        conn.post_message(m)
+    return Datagram(msgs, dropped)
 
 
 def is_vehicle_heartbeat(msg: Any) -> bool:

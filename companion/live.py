@@ -23,9 +23,13 @@ reproduces them frame for frame. What only a live loop needs lives here:
   limits); by vehicle time, flow stale (the gyro's clock runs on but no new flow frame for
   ``companion.flow_timeout_s``); by wall clock, no flow frame at all for ``flow_timeout_s``
   (flow stale, or link lost when nothing comes from the vehicle), when level commands keep
-  going out at the frame rate;
+  going out at the frame rate; across frames (``core.Plausibility``), a velocity estimate that jumps
+  further than the vehicle can accelerate (a one-frame outlier: held, not flown), and flow or
+  gyro values stuck while the vehicle turns;
 - no command leaves that is not finite and inside the tilt limit; a message that cannot be
-  handled is counted and dropped, never fatal.
+  handled is counted and dropped, never fatal; on UDP each datagram is parsed on its own;
+  commands to the companion are refused with a COMMAND_ACK; what is refused is counted in the
+  status line (``rejected N``) and the exit summary.
 """
 
 from __future__ import annotations
@@ -44,7 +48,7 @@ from typing import Any
 from companion import link, outbound
 from companion.config import Config, load_config
 from companion.controller import PiState
-from companion.core import CompanionCore, HoldCause, StepOutput
+from companion.core import CROSS_FRAME_CAUSES, CompanionCore, HoldCause, StepOutput
 from companion.errors import LinkError, UsageError
 from companion.inbound import MessageRouter, gyro_time_s, scalar_flow
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, Profile
@@ -62,6 +66,10 @@ COMMAND_RETRY_S = 1.0
 COMMAND_TRIES = 5
 STATUS_PERIOD_TTY_S = 0.25
 STATUS_PERIOD_LOG_S = 5.0
+#: counters of input that was refused or dropped (shown as "rejected" in the status line)
+REJECTION_COUNTERS = frozenset({"bad packets", "packets rejected: unsigned or badly signed", "unreadable input",
+                                "oversized datagrams dropped",
+                                "sensor data from another system", "commands refused (unsupported)"})
 
 
 # ---------------------------------------------------------------------------------------------
@@ -119,7 +127,7 @@ class HoldMonitor:
     """Turns the hold cause of each step into STATUSTEXTs: one per change of cause."""
 
     def __init__(self) -> None:
-        self.cause = HoldCause.NONE
+        self.cause: HoldCause = HoldCause.NONE
         self.episodes = 0
 
     def update(self, cause: HoldCause) -> tuple[str, int] | None:
@@ -243,6 +251,7 @@ class LiveCompanion:
         self.last_heartbeat_wall = -math.inf
         self.last_cmd_wall = -math.inf
         self.last_step: StepOutput | None = None
+        self.last_held = False  # the last step held
         self.last_cmd_rad = (0.0, 0.0)
         self._next_heartbeat = -math.inf
         self._next_status = -math.inf
@@ -250,6 +259,10 @@ class LiveCompanion:
         self._flow_times: deque[float] = deque(maxlen=50)
         self._link_lost_reported = False
         self._tty = sys.stdout.isatty()
+        #: UDP: read whole datagrams (an unfinished packet at a datagram's end is dropped, not
+        #: joined to the next datagram); their messages wait here
+        self._datagrams = link.is_datagram_link(conn)
+        self._pending: deque[Any] = deque()
         #: set by a signal handler (Ctrl-C, SIGTERM): the loop ends between two messages
         self.stop_requested = False
 
@@ -320,16 +333,29 @@ class LiveCompanion:
         else:
             self.out("flowhold: waiting for the pilot to arm in GUIDED_NOGPS")
 
+    def _next_message(self) -> Any | None:
+        if not self._datagrams:
+            return self.conn.recv_msg()
+        if not self._pending:
+            d = link.read_datagram(self.conn)
+            if d is not None:
+                if d.oversized:
+                    self.counters["oversized datagrams dropped"] += 1
+                if d.partial_bytes:
+                    self.counters["bad packets"] += 1  # an unfinished packet at the end of a datagram
+                self._pending.extend(d.messages)
+        return self._pending.popleft() if self._pending else None
+
     def _recv(self) -> Any | None:
         try:
-            msg = self.conn.recv_msg()
+            msg = self._next_message()
         except Exception:  # noqa: BLE001 - garbage on the wire: drop it, go on
             self.counters["unreadable input"] += 1
             return None
         if msg is None:
             return None
         if msg.get_type() == "BAD_DATA":
-            self.counters["bad packets"] += 1
+            self.counters[link.bad_data_kind(msg)] += 1
             return None
         if self.tlog is not None:
             self.tlog.write_bytes(bytes(msg.get_msgbuf()), self.wall())
@@ -358,6 +384,8 @@ class LiveCompanion:
                         self.mode = link.GUIDED_NOGPS
                     elif done.command == mav.MAV_CMD_COMPONENT_ARM_DISARM:
                         self.armed = True
+        elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
+            self._on_command(msg)
         elif mtype in ("SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL"):
             self.router.last_setpoint_time = None
             self.router.handle(msg, now)
@@ -368,14 +396,28 @@ class LiveCompanion:
             if vehicle:
                 self._on_flow(msg, now)
             else:
-                self.counters["flow from another system"] += 1
+                self.counters["sensor data from another system"] += 1
         elif mtype in GYRO_MESSAGES:
             if vehicle:
                 self.router.handle(msg, now)
                 self._on_gyro_time(gyro_time_s(msg), now)
+            else:
+                self.counters["sensor data from another system"] += 1
         elif vehicle:
-            self.router.handle(msg, now)  # DISTANCE_SENSOR, ATTITUDE (yaw)
+            self.router.handle(msg, now)  # DISTANCE_SENSOR, ATTITUDE (yaw, angles and rates)
+        elif mtype in ("DISTANCE_SENSOR", "ATTITUDE"):
+            self.counters["sensor data from another system"] += 1
         self._update_control(now)
+
+    def _on_command(self, msg: Any) -> None:
+        """A command addressed to the companion: none is supported, so it is refused with a
+        COMMAND_ACK (MAV_RESULT_UNSUPPORTED), as MAVLink asks, and counted."""
+        if msg.target_component != outbound.COMPANION_COMPONENT or \
+                msg.target_system not in (0, self.conn.mav.srcSystem):
+            return
+        self.counters["commands refused (unsupported)"] += 1
+        self._send(self.conn.mav.command_ack_encode(msg.command, mav.MAV_RESULT_UNSUPPORTED, 0, 0,
+                                                    msg.get_srcSystem(), msg.get_srcComponent()))
 
     def _update_control(self, now: float) -> None:
         want = self.armed and self.mode == link.GUIDED_NOGPS
@@ -402,7 +444,8 @@ class LiveCompanion:
                                 self.cfg.companion.setpoint_timeout_s)
 
     def _on_flow(self, msg: Any, now: float) -> None:
-        t = scalar_flow(msg, self.profile, self.cfg.flow_sensor.q_rad_per_count).time_s
+        f = scalar_flow(msg, self.profile, self.cfg.flow_sensor.q_rad_per_count)
+        t = f.time_s
         if math.isfinite(t):
             order = classify_frame(self.last_flow_time_s, t)
             if order is FrameOrder.DUPLICATE:
@@ -410,6 +453,7 @@ class LiveCompanion:
                 return
             if order is FrameOrder.REBOOT:
                 self.counters["vehicle reboots"] += 1
+                self.core.plausible.reset()
                 self.out(f"flowhold: the vehicle's clock restarted ({self.last_flow_time_s:.3f} s -> {t:.3f} s)")
         self.core.set_setpoint(*self._effective_setpoint(now))
         out = self.router.handle(msg, now)
@@ -425,7 +469,10 @@ class LiveCompanion:
         self.last_flow_wall = now
         self._flow_times.append(now)
         self.counters["steps"] += 1
+        if out.hold_cause in CROSS_FRAME_CAUSES:
+            self.counters[f"holds: {out.hold_cause.value}"] += 1
         self.last_step = out
+        self.last_held = out.holding
         if not self.in_control:
             self.core.pi.state = PiState()  # the pilot flies: no integration
             if not out.holding:
@@ -433,7 +480,7 @@ class LiveCompanion:
                                                  out.vy_m_s))
             return
         self._command(out.time_s, out.roll_cmd_rad, out.pitch_cmd_rad, out.vx_set_m_s, out.vy_set_m_s, now,
-                      estimate=None if out.holding else (out.vx_m_s, out.vy_m_s))
+                      estimate=None if self.last_held else (out.vx_m_s, out.vy_m_s))
         self._report(out.hold_cause)
 
     def _on_gyro_time(self, t_s: float, now: float) -> None:
@@ -514,14 +561,16 @@ class LiveCompanion:
         if len(self._flow_times) >= 2 and self._flow_times[-1] > self._flow_times[0]:
             rate = (len(self._flow_times) - 1) / (self._flow_times[-1] - self._flow_times[0])
         hb = now - self.last_heartbeat_wall
-        est = f"{s.vx_m_s:+.2f} {s.vy_m_s:+.2f}" if s is not None and not s.holding else "  --    -- "
+        est = f"{s.vx_m_s:+.2f} {s.vy_m_s:+.2f}" if s is not None and not self.last_held else "  --    -- "
         t = f"{s.time_s:7.2f}" if s is not None else "    --"
         state = "CONTROL" if self.in_control else "standby"
         hold = f" HOLD: {self.monitor.cause.value}" if self.monitor.cause is not HoldCause.NONE else ""
         roll, pitch = (math.degrees(a) for a in self.last_cmd_rad)
+        n_rejected = sum(self.rejected().values())
+        rejected = f"  rejected {n_rejected}" if n_rejected else ""
         return (f"flowhold t {t} s  set {sp[0]:+.2f} {sp[1]:+.2f}  est {est} m/s  cmd roll {roll:+5.1f} "
                 f"pitch {pitch:+5.1f} deg  {state}  link {'LOST' if hb > HEARTBEAT_TIMEOUT_S else 'ok'} "
-                f"(hb {min(hb, 99.9):.1f} s, flow {rate:.0f} Hz){hold}")
+                f"(hb {min(hb, 99.9):.1f} s, flow {rate:.0f} Hz){hold}{rejected}")
 
     def _status(self, now: float) -> None:
         if self.quiet or now < self._next_status:
@@ -570,8 +619,15 @@ class LiveCompanion:
         except Exception:  # noqa: BLE001 - closing a dead link is not an error
             pass
 
+    def rejected(self) -> Counter[str]:
+        """What was refused or dropped, by reason: bad or unsigned packets, sensor data from
+        another system, setpoints that are not finite or in an unsupported frame, ..."""
+        c = Counter({k: v for k, v in self.counters.items() if k in REJECTION_COUNTERS or k.startswith("unhandled")})
+        c.update({f"ignored: {k}": v for k, v in self.router.ignored.items()})
+        return c
+
     def summary(self) -> str:
-        c = self.counters
+        c = self.counters + Counter({f"ignored: {k}": v for k, v in self.router.ignored.items()})
         parts = [f"{c['steps']} steps", f"{c['commands']} commands", f"{self.monitor.episodes} hold episode(s)"]
         parts += [f"{k}: {v}" for k, v in sorted(c.items()) if k not in ("steps", "commands")]
         return "flowhold: " + ", ".join(parts)

@@ -41,6 +41,7 @@ and the companion's recorded ``rec_roll/pitch_cmd_rad`` and ``rec_vx/vy_m_s``.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -57,6 +58,8 @@ from companion.core import (
     EstimatorOptions,
     GyroSource,
     HoldCause,
+    Plausibility,
+    PlausibilityParams,
     StepOutput,
     StepParams,
     TiltFilter,
@@ -423,6 +426,9 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
     codes = gate_frames(time_s, scene_x, scene_y, quality, gyro_found, gx, gy, range_found, range_t, range_m, p=p)
     codes, vx, vy, dt, rate_x, rate_y = estimate_frames(codes, time_s, prev_time, scene_x, scene_y,
                                                         fc.increment, integration_s, gx, gy, range_m, p=p)
+    vx_raw, vy_raw = vx.copy(), vy.copy()
+    codes = _cross_frame_checks(rec, sysid, cfg, record, codes, time_s, scene_x, scene_y, gx, gy, vx, vy, range_m)
+    vx, vy = np.where(codes == 0, vx, np.nan), np.where(codes == 0, vy, np.nan)
     engaged = fr.engaged[keep]
     sx, sy = fr.setpoint_x[keep], fr.setpoint_y[keep]
 
@@ -442,13 +448,38 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
         "vx_m_s": vx_used, "vy_m_s": vy_used, "roll_cmd_rad": roll_cmd, "pitch_cmd_rad": pitch_cmd,
         "frame_time_s": time_s, "dt_s": dt, "vx_set_m_s": sx, "vy_set_m_s": sy,
         "hold_cause": names[cause], "engaged": engaged.astype(np.int8),
-        "vx_raw_m_s": vx, "vy_raw_m_s": vy, "scene_rate_x_rad_s": rate_x, "scene_rate_y_rad_s": rate_y,
+        "vx_raw_m_s": vx_raw, "vy_raw_m_s": vy_raw, "scene_rate_x_rad_s": rate_x, "scene_rate_y_rad_s": rate_y,
         "flow_x_counts": _take(fc.counts_x, keep, n_msg), "flow_y_counts": _take(fc.counts_y, keep, n_msg),
         "quality": quality, "gyro_x_rad_s": gx, "gyro_y_rad_s": gy, "range_m": range_m,
     }
     cols.update(_truth(rec, sysid, time_s))
     cols.update(_recorded(rec, time_s))
     return ReplayResult(rec.path, profile, gyro_source, cols, notes, int(rep.sum()))
+
+
+def _cross_frame_checks(rec: Recording, sysid: int, cfg: Config, record: np.ndarray, codes: np.ndarray,
+                        time_s: np.ndarray, scene_x: np.ndarray, scene_y: np.ndarray, gx: np.ndarray, gy: np.ndarray,
+                        vx: np.ndarray, vy: np.ndarray, range_m: np.ndarray) -> np.ndarray:
+    """``core.Plausibility`` over the usable frames in order, as ``CompanionCore.on_flow`` runs it:
+    with the latest ATTITUDE rates received before each frame (None when absent or not finite).
+    Returns the codes with the vetoed frames' causes."""
+    att = _from(rec, "ATTITUDE", sysid)
+    if att is not None and len(att):
+        j = latest_before(att.record, record)
+        ar_x = np.where(j >= 0, np.asarray(att["rollspeed"], float)[np.maximum(j, 0)], np.nan)
+        ar_y = np.where(j >= 0, np.asarray(att["pitchspeed"], float)[np.maximum(j, 0)], np.nan)
+    else:
+        ar_x = ar_y = np.full(len(record), np.nan)
+    plaus = Plausibility(PlausibilityParams.from_config(cfg))
+    out = codes.copy()
+    cols = [c.tolist() for c in (time_s, scene_x, scene_y, gx, gy, vx, vy, range_m, ar_x, ar_y)]
+    for i in np.flatnonzero(codes == 0).tolist():
+        t, fx, fy, g_x, g_y, v_x, v_y, r, a_x, a_y = (c[i] for c in cols)
+        rates = (a_x, a_y) if math.isfinite(a_x) and math.isfinite(a_y) else None
+        veto = plaus.check(t, (fx, fy), (g_x, g_y), (v_x, v_y), r, rates)
+        if veto is not None:
+            out[i] = CAUSE_CODES.index(veto)
+    return out
 
 
 def _truth(rec: Recording, sysid: int, time_s: np.ndarray) -> dict[str, np.ndarray]:

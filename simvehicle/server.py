@@ -92,6 +92,7 @@ class FlowFault(enum.IntEnum):
     FROZEN = 2  # the sensor repeats its last frame (same time and counts): stale
     SPIKE = 3  # the next frame carries SIM_FLOW_SPIKE extra counts on both axes, once
     STOPPED = 4  # no flow messages
+    STUCK = 5  # frames keep coming on time, quality kept, with the counts of the frame before the fault
 
 
 class GyroFault(enum.IntEnum):
@@ -99,6 +100,7 @@ class GyroFault(enum.IntEnum):
     FROZEN = 1  # RAW_IMU repeats its last sample (same time and rates)
     SATURATED = 2  # the gyro reads its full range (RAW_IMU clips at +-32767 mrad/s)
     STOPPED = 3  # no RAW_IMU
+    STUCK = 4  # RAW_IMU keeps coming on time with the rates of the sample before the fault
 
 
 class RangeFault(enum.IntEnum):
@@ -106,6 +108,7 @@ class RangeFault(enum.IntEnum):
     TOO_FAR = 1  # reads 1 m beyond the sensor's maximum
     TOO_NEAR = 2  # reads 0 (below its minimum: no echo)
     STOPPED = 3  # no DISTANCE_SENSOR
+    JUMP = 4  # one reading SIM_RNG_JUMP m off (inside the sensor's limits), then clears itself
 
 
 @dataclass(frozen=True)
@@ -166,13 +169,18 @@ def param_specs(cfg: Config) -> tuple[ParamSpec, ...]:
                   "attitude_dynamics effect, attitude-loop damping (nominal = off)"),
         ParamSpec("SIM_RNG_OFFSET", e.range_offset.offset if e.range_offset else 0.0, -2.0, 2.0, False,
                   "m: range_offset effect, the rangefinder reads true + offset"),
-        ParamSpec("SIM_FLOW_FAULT", 0.0, 0.0, 4.0, True,
-                  "0 none, 1 quality 0, 2 frozen (repeats its last frame), 3 one spike, 4 stream stops"),
+        ParamSpec("SIM_FLOW_FAULT", 0.0, 0.0, 5.0, True,
+                  "0 none, 1 quality 0, 2 frozen (repeats its last frame), 3 one spike, 4 stream stops, "
+                  "5 stuck counts (on time)"),
         ParamSpec("SIM_FLOW_SPIKE", 500.0, -30000.0, 30000.0, True,
                   "counts: the spike SIM_FLOW_FAULT = 3 adds to one frame on both axes"),
-        ParamSpec("SIM_GYRO_FAULT", 0.0, 0.0, 3.0, True, "0 none, 1 frozen, 2 saturated, 3 stream stops"),
-        ParamSpec("SIM_RNG_FAULT", 0.0, 0.0, 3.0, True,
-                  "0 none, 1 reads beyond its maximum, 2 reads 0 (below its minimum), 3 stream stops"),
+        ParamSpec("SIM_GYRO_FAULT", 0.0, 0.0, 4.0, True,
+                  "0 none, 1 frozen, 2 saturated, 3 stream stops, 4 stuck rates (on time)"),
+        ParamSpec("SIM_RNG_FAULT", 0.0, 0.0, 4.0, True,
+                  "0 none, 1 reads beyond its maximum, 2 reads 0 (below its minimum), 3 stream stops, "
+                  "4 one reading off by SIM_RNG_JUMP"),
+        ParamSpec("SIM_RNG_JUMP", 2.0, -4.0, 4.0, False,
+                  "m: how far the one reading of SIM_RNG_FAULT = 4 is off (kept inside the sensor's limits)"),
         ParamSpec("SIM_REBOOT", 0.0, 0.0, 1.0, True,
                   "1: the boot clock restarts at 0 (time fields jump back; the vehicle flies on)"),
     )
@@ -215,8 +223,14 @@ class SensorFrame:
 
 def faulted_sensors(s: FrameSample, *, flow_fault: FlowFault, gyro_fault: GyroFault, range_fault: RangeFault,
                     spike_counts: int, last_flow: FrameSample | None, last_gyro: FrameSample | None,
-                    range_max_m: float, gyro_range_rad_s: float) -> SensorFrame:
-    """Apply the injected faults to one frame's sensor sample ``s`` (already on the boot clock)."""
+                    range_max_m: float, gyro_range_rad_s: float, stuck_flow: FrameSample | None = None,
+                    stuck_gyro: FrameSample | None = None, range_jump_m: float = 0.0,
+                    range_min_m: float = 0.0) -> SensorFrame:
+    """Apply the injected faults to one frame's sensor sample ``s`` (already on the boot clock).
+
+    ``stuck_flow`` / ``stuck_gyro``: the sample whose counts / rates a STUCK sensor keeps
+    repeating (default: ``s`` itself); ``range_jump_m``: the offset of a JUMP reading, kept
+    inside [``range_min_m``, ``range_max_m``]."""
     flow: FrameSample | None = s
     if flow_fault is FlowFault.QUALITY_ZERO:
         flow = dataclasses.replace(s, flow_x_counts=0, flow_y_counts=0, flow_quality=0)
@@ -227,6 +241,10 @@ def faulted_sensors(s: FrameSample, *, flow_fault: FlowFault, gyro_fault: GyroFa
                                    flow_y_counts=s.flow_y_counts + spike_counts)
     elif flow_fault is FlowFault.STOPPED:
         flow = None
+    elif flow_fault is FlowFault.STUCK:
+        ref = stuck_flow if stuck_flow is not None else s
+        flow = dataclasses.replace(s, flow_x_counts=ref.flow_x_counts, flow_y_counts=ref.flow_y_counts,
+                                   flow_quality=ref.flow_quality)
     gyro: FrameSample | None = s
     if gyro_fault is GyroFault.FROZEN:
         gyro = last_gyro if last_gyro is not None else s
@@ -235,6 +253,10 @@ def faulted_sensors(s: FrameSample, *, flow_fault: FlowFault, gyro_fault: GyroFa
                                    gyro_y_rad_s=math.copysign(gyro_range_rad_s, s.gyro_y_rad_s))
     elif gyro_fault is GyroFault.STOPPED:
         gyro = None
+    elif gyro_fault is GyroFault.STUCK:
+        ref = stuck_gyro if stuck_gyro is not None else s
+        gyro = dataclasses.replace(s, gyro_x_rad_s=ref.gyro_x_rad_s, gyro_y_rad_s=ref.gyro_y_rad_s,
+                                   gyro_z_rad_s=ref.gyro_z_rad_s)
     rng: FrameSample | None = s
     if range_fault is RangeFault.TOO_FAR:
         rng = dataclasses.replace(s, range_m=range_max_m + 1.0)
@@ -242,6 +264,8 @@ def faulted_sensors(s: FrameSample, *, flow_fault: FlowFault, gyro_fault: GyroFa
         rng = dataclasses.replace(s, range_m=0.0)
     elif range_fault is RangeFault.STOPPED:
         rng = None
+    elif range_fault is RangeFault.JUMP:
+        rng = dataclasses.replace(s, range_m=min(max(s.range_m + range_jump_m, range_min_m), range_max_m))
     return SensorFrame(flow, gyro, rng)
 
 
@@ -366,9 +390,19 @@ class Vehicle:
         self.boot_offset_s = 0.0
         self._last_flow: FrameSample | None = None
         self._last_gyro: FrameSample | None = None
+        self._stuck_flow: FrameSample | None = None  # what a STUCK flow sensor repeats
+        self._stuck_gyro: FrameSample | None = None
         self.counters: Counter[str] = Counter()
+        #: packets dropped on the links (bad CRC or header, unsigned, oversized): SYS_STATUS errors_comm
+        self.comm_errors = 0
 
     # -- state ---------------------------------------------------------------------------
+
+    @property
+    def refused(self) -> int:
+        """Messages refused (SET_ATTITUDE_TARGET rejected, commands and parameters refused):
+        SYS_STATUS ``errors_count1``."""
+        return sum(v for k, v in self.counters.items() if "rejected" in k or "refused" in k)
 
     @property
     def guided(self) -> bool:
@@ -401,22 +435,32 @@ class Vehicle:
             s = dataclasses.replace(s, t_s=s.t_s - self.boot_offset_s)
         v = self.values
         flow_fault = FlowFault(int(v["SIM_FLOW_FAULT"]))
-        sensors = faulted_sensors(s, flow_fault=flow_fault, gyro_fault=GyroFault(int(v["SIM_GYRO_FAULT"])),
-                                  range_fault=RangeFault(int(v["SIM_RNG_FAULT"])),
+        gyro_fault = GyroFault(int(v["SIM_GYRO_FAULT"]))
+        range_fault = RangeFault(int(v["SIM_RNG_FAULT"]))
+        stuck_flow = (self._stuck_flow or self._last_flow) if flow_fault is FlowFault.STUCK else None
+        stuck_gyro = (self._stuck_gyro or self._last_gyro) if gyro_fault is GyroFault.STUCK else None
+        rf = self.base_cfg.rangefinder
+        sensors = faulted_sensors(s, flow_fault=flow_fault, gyro_fault=gyro_fault, range_fault=range_fault,
                                   spike_counts=int(v["SIM_FLOW_SPIKE"]), last_flow=self._last_flow,
-                                  last_gyro=self._last_gyro, range_max_m=self.base_cfg.rangefinder.max_m,
-                                  gyro_range_rad_s=self.sim.gyro_range)
+                                  last_gyro=self._last_gyro, range_max_m=rf.max_m,
+                                  gyro_range_rad_s=self.sim.gyro_range, stuck_flow=stuck_flow,
+                                  stuck_gyro=stuck_gyro, range_jump_m=v["SIM_RNG_JUMP"], range_min_m=rf.min_m)
         notes = []
         frame_ms = int(round(s.t_s * 1e3))
         if commit:
             self._last_flow = sensors.flow or self._last_flow
             self._last_gyro = sensors.gyro or self._last_gyro
+            self._stuck_flow = stuck_flow
+            self._stuck_gyro = stuck_gyro
             if flow_fault is FlowFault.SPIKE:  # once
                 v["SIM_FLOW_FAULT"] = 0.0
                 notes.append("SIM_FLOW_FAULT")
+            if range_fault is RangeFault.JUMP:  # once
+                v["SIM_RNG_FAULT"] = 0.0
+                notes.append("SIM_RNG_FAULT")
             self.frame_ms = frame_ms
             self.cmd_for_frame = False
-        enc, rf, q = self.enc, self.base_cfg.rangefinder, self.base_cfg.flow_sensor.q_rad_per_count
+        enc, q = self.enc, self.base_cfg.flow_sensor.q_rad_per_count
         msgs: list[tuple[str | None, Any]] = []
         if sensors.gyro is not None:
             msgs.append(("RAW_IMU", telemetry.raw_imu(enc, sensors.gyro)))
@@ -448,7 +492,8 @@ class Vehicle:
             health &= ~flow
         if self.values["SIM_RNG_FAULT"]:
             health &= ~laser
-        return self.enc.sys_status_encode(present, present, health, 0, 12600, -1, 100, 0, 0, 0, 0, 0, 0)
+        return self.enc.sys_status_encode(present, present, health, 0, 12600, -1, 100, 0,
+                                          min(self.comm_errors, 0xFFFF), min(self.refused, 0xFFFF), 0, 0, 0)
 
     def command_to_activate(self) -> tuple[float, float]:
         """The (roll, pitch) command to make active at the end of this frame (rad)."""
@@ -536,6 +581,14 @@ class Vehicle:
         return ""
 
     def _ack(self, msg: Any, command: int, result: int) -> Reply:
+        if result != mav.MAV_RESULT_ACCEPTED:  # counted: SYS_STATUS errors_count1 and the exit summary
+            if msg.get_type() == "SET_MODE":
+                name = "SET_MODE"
+            elif command in mav.enums["MAV_CMD"]:
+                name = mav.enums["MAV_CMD"][command].name
+            else:
+                name = f"command {command}"
+            self.counters[f"{name} refused"] += 1
         return Reply(self.enc.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(),
                                                  msg.get_srcComponent()))
 
@@ -543,11 +596,13 @@ class Vehicle:
         return [Reply(self.heartbeat(), to_all=True)] if result == mav.MAV_RESULT_ACCEPTED else []
 
     def _set_mode(self, base_mode: float, custom_mode: float) -> int:
+        if _whole(base_mode) is None or _whole(custom_mode) is None:
+            return mav.MAV_RESULT_DENIED  # NaN, infinite or fractional
         if not int(base_mode) & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             return mav.MAV_RESULT_DENIED
         mode = int(custom_mode)
         if mode not in SUPPORTED_MODES:
-            self.counters[f"mode {link.mode_name(mode)} refused"] += 1
+            self.counters[f"mode {link.mode_name(mode)} asked for"] += 1  # refused: no GPS
             return mav.MAV_RESULT_DENIED
         self.custom_mode = mode
         return mav.MAV_RESULT_ACCEPTED
@@ -579,9 +634,9 @@ class Vehicle:
             result = self._set_mode(p[0], p[1])
             replies += self._mode_notes(result)
         elif command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
-            result = self._set_interval(int(p[0]), p[1], streams)
+            result = self._set_interval(_whole(p[0]), p[1], streams)
         elif command == mav.MAV_CMD_GET_MESSAGE_INTERVAL:
-            mid = int(p[0])
+            mid = _whole(p[0])
             if mid in STREAM_IDS.values():
                 iv = streams.interval_s(mid)
                 replies.append(Reply(self.enc.message_interval_encode(mid, -1 if iv < 0 else int(iv * 1e6))))
@@ -589,7 +644,8 @@ class Vehicle:
             else:
                 result = mav.MAV_RESULT_DENIED
         elif command == mav.MAV_CMD_REQUEST_MESSAGE:
-            one = self._one_message(int(p[0]))
+            mid = _whole(p[0])
+            one = self._one_message(mid) if mid is not None else None
             result = mav.MAV_RESULT_ACCEPTED if one is not None else mav.MAV_RESULT_UNSUPPORTED
             if one is not None:
                 replies.append(Reply(one))
@@ -600,7 +656,7 @@ class Vehicle:
             result = mav.MAV_RESULT_UNSUPPORTED
         return [self._ack(msg, command, result), *replies]
 
-    def _set_interval(self, msg_id: int, interval_us: float, streams: StreamSchedule) -> int:
+    def _set_interval(self, msg_id: int | None, interval_us: float, streams: StreamSchedule) -> int:
         if msg_id not in STREAM_IDS.values() or not math.isfinite(interval_us):
             return mav.MAV_RESULT_DENIED
         if interval_us == 0:
@@ -647,10 +703,12 @@ class Vehicle:
         unchanged value and a STATUSTEXT saying why."""
         spec = self.specs.get(name)
         if spec is None:
+            self.counters["PARAM_SET refused: unknown parameter"] += 1
             return [Reply(link.statustext(self.enc, f"unknown parameter {name}", mav.MAV_SEVERITY_WARNING))]
         try:
             value = spec.check(value)
         except ValueError as exc:
+            self.counters["PARAM_SET refused: bad value"] += 1
             return [Reply(self._param_value(name)),
                     Reply(link.statustext(self.enc, str(exc), mav.MAV_SEVERITY_WARNING))]
         self.values[name] = value
@@ -659,7 +717,8 @@ class Vehicle:
             self.boot_offset_s = self.sim.t_s + self.T  # the next frame is boot time 0
             self.values[name] = 0.0
         elif name.startswith("SIM_") and name not in ("SIM_WIND_FX", "SIM_WIND_FY", "SIM_FLOW_FAULT",
-                                                      "SIM_FLOW_SPIKE", "SIM_GYRO_FAULT", "SIM_RNG_FAULT"):
+                                                      "SIM_FLOW_SPIKE", "SIM_GYRO_FAULT", "SIM_RNG_FAULT",
+                                                      "SIM_RNG_JUMP"):
             self.sim.set_config(config_with_params(self.base_cfg, self.values))
         return [Reply(self._param_value(name), to_all=True)]
 
@@ -669,6 +728,8 @@ class Vehicle:
 
 #: bytes per UDP datagram when batching packets (below a typical 1500-byte MTU)
 MAX_DATAGRAM = 1400
+#: a received datagram longer than this is dropped unread (bytes; see companion.link)
+MAX_DATAGRAM_IN = link.MAX_DATAGRAM_IN
 
 
 def _datagrams(packets: list[bytes]) -> list[bytes]:
@@ -683,6 +744,14 @@ def _datagrams(packets: list[bytes]) -> list[bytes]:
     if cur:
         out.append(cur)
     return out
+
+
+def _whole(x: float) -> int | None:
+    """A command parameter that must be a whole number (message id, mode): the int, or None
+    when it is NaN, infinite or fractional."""
+    if not math.isfinite(x) or x != round(x):
+        return None
+    return int(x)
 
 
 def _param_name(param_id: Any) -> str:
@@ -728,6 +797,8 @@ class UdpVehicle:
         self.sock.setblocking(False)
         self.address = self.sock.getsockname()
         self.peers: dict[tuple[str, int], Peer] = {}
+        #: MAVLink 2 signing: the newest timestamp of each (link id, system, component), all links
+        self._signing_streams: dict[tuple[int, int, int], int] = {}
         self.unix_start_s = time.time()
         if key is not None:
             link.setup_signing(vehicle.enc, key, unix_s=self.unix_start_s)
@@ -809,7 +880,10 @@ class UdpVehicle:
         if now >= self._next_status:
             self._next_status = now + 5.0
             if self.peers:
-                self.log(f"simvehicle: t={self.v.sim.t_s:.2f} s {self.v.status()}, {len(self._live_peers())} peer(s)")
+                dropped = f", {self.v.comm_errors} packet(s) dropped" if self.v.comm_errors else ""
+                refused = f", {self.v.refused} message(s) refused" if self.v.refused else ""
+                self.log(f"simvehicle: t={self.v.sim.t_s:.2f} s {self.v.status()}, "
+                         f"{len(self._live_peers())} peer(s){dropped}{refused}")
 
     # -- receiving -----------------------------------------------------------------------
 
@@ -818,6 +892,9 @@ class UdpVehicle:
         parser.robust_parsing = True
         if self.key is not None:
             link.setup_signing(parser, self.key, unix_s=time.time(), sign_outgoing=False)
+            # one replay window for every link, as ArduPilot keeps: a signed packet heard on one
+            # link and sent again from another address is as old there as here
+            parser.signing.stream_timestamps = self._signing_streams
         return Peer(addr, parser, StreamSchedule(self.v.T))
 
     def _receive_one(self) -> bool:
@@ -829,6 +906,9 @@ class UdpVehicle:
         except OSError:
             self.counters["receive errors"] += 1
             return True
+        if len(data) > MAX_DATAGRAM_IN:  # no MAVLink link sends this much at once: not worth parsing
+            self._reject("oversized datagrams dropped")
+            return True
         peer = self.peers.get(addr)
         fresh = peer is None
         if peer is None:
@@ -836,11 +916,12 @@ class UdpVehicle:
         try:
             msgs = peer.parser.parse_buffer(data) or []
         except Exception:  # noqa: BLE001 - a malformed datagram must not stop the vehicle
-            self.counters["bad packets"] += 1
-            return True
+            msgs = [None]
+        if link.discard_partial(peer.parser):  # never join a datagram's broken tail to the next one
+            self._reject("bad packets")
         for msg in msgs:
-            if msg.get_type() == "BAD_DATA":
-                self.counters["bad packets"] += 1
+            if msg is None or msg.get_type() == "BAD_DATA":
+                self._reject(link.bad_data_kind(msg) if msg is not None else "bad packets")
                 continue
             if fresh:
                 self.peers[addr] = peer
@@ -855,6 +936,12 @@ class UdpVehicle:
             except Exception as exc:  # noqa: BLE001 - one bad message must not stop the vehicle
                 self.counters[f"handler error {type(exc).__name__}"] += 1
         return True
+
+    def _reject(self, why: str) -> None:
+        """Count a datagram or packet dropped on the link; the total goes out in SYS_STATUS
+        ``errors_comm``."""
+        self.counters[why] += 1
+        self.v.comm_errors += 1
 
     def _on_message(self, msg: Any, peer: Peer) -> None:
         raw = bytes(msg.get_msgbuf())

@@ -287,7 +287,7 @@ def test_parameters_intervals_and_capabilities(vehicle_port):
         assert gcs.recv("PARAM_VALUE", cond=lambda m: m.param_id == "SIM_ATT_OMEGA").param_value == \
             pytest.approx(5.4, rel=1e-6)  # Table VI's Omega_p
         assert gcs.set_param("SIM_FLOW_FAULT", 9).param_value == 0.0  # out of range: refused, unchanged
-        gcs.wait_text("SIM_FLOW_FAULT must be in [0, 4]")
+        gcs.wait_text("SIM_FLOW_FAULT must be in [0, 5]")
         assert gcs.set_param("SIM_WIND_FY", 2.5).param_value == 2.5
         # SET_MESSAGE_INTERVAL: ATTITUDE at 5 Hz -> consecutive ATTITUDE 200 ms apart
         gcs.quiet({"ATTITUDE": 5.0})

@@ -161,6 +161,8 @@ def _paper_faults(msg: Any, k: int, t: float) -> list | None:
             msg.time_usec -= 40_000  # out of order: before the last frame
         if k == 90:
             return [(msg, t), (msg, t)]  # the same frame twice
+        if k == 100:
+            msg.flow_x += 60  # under the sensor's limit (94 counts) but a jump no vehicle makes in 20 ms
         if k >= 120:
             msg.time_usec -= 2_000_000  # vehicle reboot: its clock restarts 2 s back
     elif mtype == "RAW_IMU":
@@ -263,7 +265,7 @@ def test_fast_replay_equals_the_live_path_under_faults(flights, paper_cfg, tmp_p
     # the faults were seen (so the comparison covered them)
     expected = {
         "paper_sensor_faults": {"FLOW_QUALITY", "FLOW_SPIKE", "GYRO_MISSING", "GYRO_INVALID", "RANGE_INVALID",
-                                "RANGE_STALE"},
+                                "RANGE_STALE", "VELOCITY_JUMP"},
         "paper_mode_and_gcs": {"DISENGAGED"},
         "ardupilot_faults_and_repeats": {"FLOW_INVALID", "FLOW_QUALITY", "FLOW_SPIKE", "GYRO_INVALID"},
         "ardupilot_imu_tilt_filter": {"FLOW_INVALID", "FLOW_QUALITY", "FLOW_SPIKE"},

@@ -43,5 +43,8 @@ def test_mavproxy_connects_sees_and_arms_the_vehicle(tmp_path, paper_cfg):
     logs = list(tmp_path.rglob("mav.tlog"))
     assert logs, out
     log = mavutil.mavlink_connection(str(logs[0]))
-    att = log.recv_match(type="ATTITUDE", condition="ATTITUDE.get_srcSystem() == 1")
+    try:
+        att = log.recv_match(type="ATTITUDE", condition="ATTITUDE.get_srcSystem() == 1")
+    finally:
+        log.close()  # an unclosed file is a ResourceWarning, an error for whichever test is running at GC
     assert att is not None and abs(att.roll) < 1e-6  # disarmed, level
