@@ -1,0 +1,117 @@
+"""``python -m companion diagnose``: find where a flight and the paper's model differ, and why.
+
+    python -m companion diagnose RECORDING [--config FILE] [--profile P] [--json OUT] [--report DIR]
+
+The recording is compared with the nominal model (``--config``, default ``configs/paper.toml``)
+on channels where each effect shows despite the closed loop (``groups``): the attitude loop, the
+gyro against the attitude, the flow against the rotation and the plant, and the force balance.
+Candidate effects (CONVENTIONS.md) are fitted, kept only when they earn their parameters on
+held-out data (``select``), located in time and by operating condition (``locate``); what they do
+not explain goes through sparse regression (``sparse``). Output: the JSON report of
+CONVENTIONS.md (``--json``), a Markdown report with plots (``--report``), a summary on stdout.
+Method: docs/diagnose.md.
+
+Recordings without a commanded attitude (or given ``--sensor-config``) go to the sensor-only
+diagnosis (``companion.sensor_diagnose``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from companion.config import load_config
+from companion.errors import RecordingError
+from companion.recording import load_recording
+from companion.report import Report
+
+if TYPE_CHECKING:
+    from companion.diagnose.diagnosis import Diagnosis
+
+__all__ = ["run_cli", "diagnose_recording", "summary"]
+
+
+def diagnose_recording(path: str | Path, *, config: str | Path | None = None, profile: str | None = None,
+                       report_dir: str | Path | None = None) -> Diagnosis:
+    """Load, diagnose, optionally write the Markdown report; returns the ``Diagnosis``."""
+    from companion.diagnose.diagnosis import diagnose
+
+    cfg = load_config(config)
+    rec = load_recording(path)
+    diag = diagnose(rec, cfg, profile=profile)
+    if report_dir is not None:
+        from companion.diagnose.markdown import write_report
+
+        write_report(diag, report_dir)
+    return diag
+
+
+def _sensor_mode(args: argparse.Namespace) -> int:
+    try:
+        from companion.sensor_diagnose import run_sensor_cli
+    except ImportError:
+        raise RecordingError(f"{Path(args.recording).name}: no commanded attitude (SET_ATTITUDE_TARGET or "
+                             f"ATTITUDE_TARGET) and the sensor-only diagnosis is not installed") from None
+    return int(run_sensor_cli(args))
+
+
+def run_cli(args: argparse.Namespace) -> int:
+    """Entry point of ``python -m companion diagnose`` (arguments declared in companion/cli.py)."""
+    if getattr(args, "sensor_config", None):
+        return _sensor_mode(args)
+    from companion.diagnose.channels import has_commands
+
+    t_start = time.perf_counter()
+    cfg = load_config(args.config)
+    rec = load_recording(args.recording)
+    if not has_commands(rec) and ("OPTICAL_FLOW" in rec or "OPTICAL_FLOW_RAD" in rec):
+        return _sensor_mode(args)
+    from companion.diagnose.diagnosis import diagnose
+
+    diag = diagnose(rec, cfg, profile=args.profile)
+    report = diag.report
+    report.notes.append(f"diagnosed in {time.perf_counter() - t_start:.1f} s")
+    if args.json:
+        report.write_json(args.json)
+    if args.report:
+        from companion.diagnose.markdown import write_report
+
+        out = write_report(diag, args.report)
+    print(summary(report))
+    if args.json:
+        print(f"json: {args.json}")
+    if args.report:
+        print(f"report: {out}")
+    return 0
+
+
+def summary(report: Report) -> str:
+    """A short human summary of a report."""
+    head = next((n for n in report.notes if n.startswith("profile ")), "")
+    lines = [f"{report.recording}: {head}"]
+    # what the reader skipped or repaired and the frames left out: a damaged recording says so
+    lines += [f"note: {n}" for n in report.notes if n != head and not n.startswith("diagnosed in")]
+    found = report.significant()
+    if found:
+        lines.append(f"found {len(found)} effect(s) the model leaves out:")
+        for f in found:
+            ps = ", ".join(f"{k} = {v:.4g} +- {f.uncertainty.get(k, math.nan):.2g}" for k, v in f.parameters.items())
+            fit = f.fit
+            ch = f.evidence.get("channel", "")
+            unit = f.evidence.get("unit", "")
+            imp = (f"held-out {ch} rms {fit.heldout_rms_before:.3g} -> {fit.heldout_rms_after:.3g} {unit} "
+                   f"({fit.improvement_pct:.0f} % lower)") if fit else ""
+            lines.append(f"  {f.effect}: {ps}; {imp}")
+            lines.append(f"    {f.explanation}")
+    else:
+        lines.append("no effect the model leaves out earns its parameters: the recording fits the nominal model")
+    not_found = [f.effect for f in report.findings if not f.significant]
+    if not_found:
+        lines.append("tried, not found: " + ", ".join(not_found))
+    for u in report.unexplained:
+        lines.append(f"unexplained: {u.channel} {u.start_s:.1f}-{u.end_s:.1f} s rms {u.rms:.3g}"
+                     + (f"; best term: {u.best_term}" if u.best_term else ""))
+    return "\n".join(lines)

@@ -1,0 +1,130 @@
+"""The attitude-loop channel: the recorded attitude against the model's response to the recorded command.
+
+Per axis (roll, pitch) the paper's attitude loop is the second-order response (eq. 26)
+
+    angle'' = Omega_p^2 (u - angle) - 2 zeta Omega_p angle'
+
+to the command u, held over each frame (the command computed at frame k acts over
+[t_k+1, t_k+2], CONVENTIONS.md; ``channels.extract`` already aligns it). Discretised exactly
+(zero-order hold), the response of a whole segment to the recorded commands is one linear
+filter (``scipy.signal.lfilter``) started from the recorded attitude and rate at the segment's
+first frame: an output-error simulation, linear-time, that never sees the velocity loop, so the
+closed loop cannot hide an attitude-loop mismatch. A constant per-axis offset (a level trim of
+the attitude estimate) is removed as a nuisance in every model.
+
+``attitude_roll``, ``attitude_pitch`` (rad): recorded minus simulated attitude.
+Parameters: ``omega_p`` rad/s, ``zeta`` (effect ``attitude_dynamics``) and ``delay`` s (effect
+``attitude_delay``: the loop responds this much later than the model's one-frame latency;
+negative = earlier).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import linalg, signal
+
+from companion.diagnose.channels import FlightData
+
+
+def discretise(omega_p: float, zeta: float, T: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Exact zero-order-hold discretisation of the attitude loop: (Ad, Bd, b, a) with
+    x = [angle, rate], the transfer function b(z)/a(z) from command to angle.
+
+    Ad = exp(A T) by Sylvester's formula on the two poles (complex when zeta < 1),
+    Bd = A^-1 (Ad - I) B; ``expm_discretise`` is the same by ``scipy.linalg.expm``."""
+    w = omega_p
+    A = np.array([[0.0, 1.0], [-w * w, -2.0 * zeta * w]])
+    B = np.array([0.0, w * w])
+    root = np.sqrt(complex(zeta * zeta - 1.0))
+    l1, l2 = w * (-zeta + root), w * (-zeta - root)
+    e1, e2 = np.exp(l1 * T), np.exp(l2 * T)
+    if abs(l1 - l2) > 1e-9 * w:
+        c0 = (l1 * e2 - l2 * e1) / (l1 - l2)
+        c1 = (e1 - e2) / (l1 - l2)
+    else:  # critically damped: the limit of the formula
+        c0 = e1 * (1.0 - l1 * T)
+        c1 = e1 * T
+    Ad = (c0.real * np.eye(2) + c1.real * A)
+    Bd = np.linalg.solve(A, (Ad - np.eye(2)) @ B)
+    return Ad, Bd, *_transfer(Ad, Bd)
+
+
+def expm_discretise(omega_p: float, zeta: float, T: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Ad, Bd) by the matrix exponential of the augmented system (reference for tests)."""
+    w = omega_p
+    M = np.zeros((3, 3))
+    M[:2, :2] = np.array([[0.0, 1.0], [-w * w, -2.0 * zeta * w]]) * T
+    M[1, 2] = w * w * T
+    E = linalg.expm(M)
+    return E[:2, :2], E[:2, 2]
+
+
+def _transfer(Ad: np.ndarray, Bd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """y_k = C x_k, C = [1, 0]:  a(z) = det(zI - Ad), b(z) = C adj(zI - Ad) Bd."""
+    a1 = -(Ad[0, 0] + Ad[1, 1])
+    a2 = Ad[0, 0] * Ad[1, 1] - Ad[0, 1] * Ad[1, 0]
+    b1 = Bd[0]
+    b2 = Ad[0, 1] * Bd[1] - Ad[1, 1] * Bd[0]
+    return np.array([0.0, b1, b2]), np.array([1.0, a1, a2])
+
+
+class AttitudeProblem:
+    """Output-error simulation of the attitude loop over every segment of a flight."""
+
+    def __init__(self, data: FlightData) -> None:
+        self.data = data
+        self.T = data.frame_s
+        self.u = np.stack([data.roll_cmd_rad, data.pitch_cmd_rad])
+        self.y = np.stack([data.roll_rad, data.pitch_rad])
+        self.segments = data.segments()
+        # initial rate of each segment from the recorded attitude (one-sided difference)
+        self.rate0 = []
+        for a, b in self.segments:
+            k = min(a + 1, b - 1)
+            self.rate0.append((self.y[:, k] - self.y[:, a]) / max(data.t_s[k] - data.t_s[a], 1e-6))
+
+    def delayed_command(self, delay_s: float) -> np.ndarray:
+        """The command shifted by ``delay_s`` (fractional frames: frame-averaged), per segment."""
+        if delay_s == 0.0:
+            return self.u
+        shift = delay_s / self.T
+        m = math.floor(shift)
+        f = shift - m
+        out = np.empty_like(self.u)
+        for a, b in self.segments:
+            seg = self.u[:, a:b]
+            idx = np.arange(b - a)
+            i0 = np.clip(idx - m, 0, b - a - 1)
+            i1 = np.clip(idx - m - 1, 0, b - a - 1)
+            out[:, a:b] = (1.0 - f) * seg[:, i0] + f * seg[:, i1]
+        return out
+
+    def simulate(self, omega_p: float, zeta: float, delay_s: float = 0.0) -> np.ndarray:
+        """Simulated attitude (2, n) [roll, pitch], rad, each segment started from the recording."""
+        if not (omega_p > 0 and zeta > 0 and math.isfinite(omega_p) and math.isfinite(zeta)):
+            return np.full_like(self.y, np.nan)
+        Ad, Bd, b, a = discretise(omega_p, zeta, self.T)
+        Ainv = np.linalg.inv(Ad)
+        u = self.delayed_command(delay_s)
+        out = np.empty_like(self.y)
+        for (s0, s1), r0 in zip(self.segments, self.rate0, strict=True):
+            for i in (0, 1):
+                us = u[i, s0:s1]
+                x0 = np.array([self.y[i, s0], r0[i]])
+                um1 = us[0]
+                xm1 = Ainv @ (x0 - Bd * um1)
+                xm2 = Ainv @ (xm1 - Bd * um1)
+                zi = signal.lfiltic(b, a, [xm1[0], xm2[0]], [um1, um1])
+                out[i, s0:s1], _ = signal.lfilter(b, a, us, zi=zi)
+        return out
+
+    def residual(self, omega_p: float, zeta: float, delay_s: float = 0.0,
+                 fit_mask: np.ndarray | None = None) -> np.ndarray:
+        """Recorded minus simulated attitude (2, n), rad, with each axis' constant offset removed
+        (the offset estimated on ``fit_mask`` frames, all frames by default)."""
+        e = self.y - self.simulate(omega_p, zeta, delay_s)
+        if fit_mask is None:
+            return e - e.mean(axis=1, keepdims=True)
+        return e - e[:, fit_mask].mean(axis=1, keepdims=True)

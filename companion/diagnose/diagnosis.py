@@ -1,0 +1,330 @@
+"""The closed-loop diagnosis: recording -> channels -> effects chosen per group -> Report.
+
+``diagnose(rec, cfg)`` runs the three groups (``groups``), fills the mismatch report of
+CONVENTIONS.md (``companion.report.Report``) and keeps everything the human report plots
+(``Diagnosis``). Nothing here sees a simulator's settings: only the recording and the nominal
+parameter set.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.config import Config
+from companion.diagnose.attitude import AttitudeProblem
+from companion.diagnose.channels import FlightData, extract
+from companion.diagnose.explain import explain
+from companion.diagnose.flowmodel import IDX, FlowProblem
+from companion.diagnose.groups import FlowGroupState, GyroProblem, attitude_group, flow_group, gyro_group
+from companion.diagnose.locate import Interval, conditions, effect_windows, excess_windows
+from companion.diagnose.select import Comparison, Group, ModelScore, Selector, Settings
+from companion.diagnose.sparse import SparseFit, Term, sparse_fit
+from companion.recording import Recording
+from companion.report import Finding, Fit, Report, Unexplained, Window
+
+#: a sparse model must predict at least this fraction of a residual's held-out sum of squares, and
+#: what it predicts must be larger than the channel's resolution, to be reported as unexplained
+SPARSE_MIN_R2 = 0.2
+
+
+@dataclass
+class GroupResult:
+    """One group's fit: chosen effects, their evidence, and the residuals before and after."""
+
+    group: Group
+    selector: Selector
+    chosen: list[str]
+    final: ModelScore
+    evidence: dict[str, Comparison]
+    r_nominal: list[np.ndarray]
+    r_final: list[np.ndarray]
+    sparse: dict[str, SparseFit] = field(default_factory=dict)
+    unexplained_windows: dict[str, list[Interval]] = field(default_factory=dict)
+    mismatch_windows: dict[str, list[Interval]] = field(default_factory=dict)
+
+
+@dataclass
+class Diagnosis:
+    """Everything a diagnosis found, for the JSON report and the human report."""
+
+    data: FlightData
+    cfg: Config
+    report: Report
+    groups: dict[str, GroupResult]
+    attitude: AttitudeProblem
+    gyro: GyroProblem
+    flow: FlowProblem
+    flow_state: FlowGroupState
+    timings: dict[str, float]
+
+
+def _params(effect: str, g: Group, score: ModelScore, evidence_state: dict[str, float]) -> tuple[
+        dict[str, float], dict[str, float]]:
+    cand = next(c for c in g.candidates if c.effect == effect)
+    idx = g.index(cand.params)
+    p = {n: float(score.p[i]) for n, i in zip(cand.params, idx, strict=True)}
+    sd = {n: float(math.sqrt(max(score.cov[i, i], 0.0))) for n, i in zip(cand.params, idx, strict=True)}
+    if effect == "wind_force":
+        st = score.state or evidence_state
+        p["start_s"] = float(st.get("start_s", math.nan))
+        p["end_s"] = float(st.get("end_s", math.nan))
+        # the ends' uncertainty from the profile of the fit over each end (``wind.locate``); the
+        # per-fold windows are not used: a fold whose held-out block touches an end cannot place it
+        sd["start_s"] = float(st.get("start_sd", math.nan))
+        sd["end_s"] = float(st.get("end_sd", math.nan))
+    return p, sd
+
+
+def _cond_values(data: FlightData, fp: FlowProblem, p_flow: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-frame operating conditions: speed from the flow under the final geometry, tilt, body
+    rate from the attitude, height from the rangefinder."""
+    X, _ = fp.flow_velocity(p_flow)
+    v = np.zeros_like(X)
+    for a, b in data.segments():
+        if b - a > 1:
+            v[:, a:b] = np.gradient(X[:, a:b], data.t_s[a:b], axis=1)
+    rate = np.zeros(data.n)
+    for a, b in data.segments():
+        if b - a > 1:
+            rr = np.gradient(data.roll_rad[a:b], data.t_s[a:b])
+            pr = np.gradient(data.pitch_rad[a:b], data.t_s[a:b])
+            rate[a:b] = np.hypot(rr, pr)
+    return {"speed_m_s": np.hypot(v[0], v[1]), "tilt_rad": np.hypot(data.roll_rad, data.pitch_rad),
+            "rate_rad_s": rate, "altitude_m": data.range_m}
+
+
+def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp: FlowProblem,
+           res: GroupResult, c: int) -> list[Term]:
+    """Candidate-term library for channel c of a group (rows aligned with its residual)."""
+    t = data.t_s
+    segs = data.segments()
+
+    def grad(y: np.ndarray) -> np.ndarray:
+        out = np.zeros_like(y)
+        for a, b in segs:
+            if b - a > 1:
+                out[..., a:b] = np.gradient(y[..., a:b], t[a:b], axis=-1)
+        return out
+
+    if name == "attitude":
+        p = res.final.p
+        y = ap.simulate(float(p[0]), float(p[1]), float(p[2]))
+        u = ap.delayed_command(float(p[2]))
+        yd = grad(y)
+        ydd = grad(yd)
+        o = 1 - c
+        return [Term("tracking error", "command minus attitude: a gain error of the loop", "rad", u[c] - y[c]),
+                Term("attitude rate", "damping different from zeta", "rad/s", yd[c]),
+                Term("angular acceleration", "inertia or a lag in the loop", "rad/s^2", ydd[c]),
+                Term("command", "a command scale (DC gain) error", "rad", u[c]),
+                Term("command rate", "feed-forward or input shaping", "rad/s", grad(u)[c]),
+                Term("cubic tracking error", "a saturating or rate-limited loop", "rad^3", (u[c] - y[c]) ** 3),
+                Term("rate |rate|", "a rate-dependent (aerodynamic) damping", "rad^2/s^2", yd[c] * np.abs(yd[c])),
+                Term("other-axis attitude", "roll-pitch coupling", "rad", y[o]),
+                Term("other-axis rate", "gyroscopic or mixer coupling", "rad/s", yd[o])]
+    if name == "gyro":
+        r = gp.rate
+        rd = np.gradient(r, gp.t_s, axis=1) if r.shape[1] > 1 else np.zeros_like(r)
+        o = 1 - c
+        return [Term("attitude rate", "a gyro scale-factor error", "rad/s", r[c]),
+                Term("angular acceleration", "the gyro lags the attitude (a low-pass filter or a delay)",
+                     "rad/s^2", rd[c]),
+                Term("other-axis rate", "gyro axes not aligned with the attitude axes", "rad/s", r[o]),
+                Term("attitude", "a g-sensitive or attitude-dependent gyro error", "rad", gp.angle[c]),
+                Term("rate cubed", "a non-linear gyro scale", "rad^3/s^3", r[c] ** 3)]
+    if name == "flow":
+        W = fp.flow.idx
+        if c >= 2:
+            return _force_terms(data, fp, res, c - 2)
+        i, o = c, 1 - c
+        R = fp.R
+        Rd = fp.Rdot
+        Rdd = grad(Rd)
+        # translation from the plant (never from the recorded flow, which holds the residual's noise)
+        off = float(res.final.p[IDX["offset"]])
+        dl = float(res.final.p[IDX["delay"]])
+        Y = fp.model_translation(off, dl)
+        YA = fp.model_translation(off, dl, power=2)
+        raw = [("rotation", "a rotation scale error of the flow", "rad", R[i][W]),
+               ("rotation rate", "a timing error between flow and attitude", "rad/s", Rd[i][W]),
+               ("rotation acceleration", "a filter in the flow or attitude path", "rad/s^2", Rdd[i][W]),
+               ("other-axis rotation", "cross-talk between the flow axes", "rad", R[o][W]),
+               ("other-axis rotation rate", "cross-talk with a timing error", "rad/s", Rd[o][W]),
+               ("translation", "a translation scale error (range or lens)", "rad", Y[i]),
+               ("translation / height", "a range error that grows at low height", "rad/m", YA[i]),
+               ("other-axis translation", "the flow axes turned with respect to the motion", "rad", Y[o]),
+               ("rotation squared", "a non-linear flow response", "rad^2", R[i][W] ** 2)]
+        return [Term(n, w, u, (v @ fp.P).ravel()) for n, w, u, v in raw]
+    return []
+
+
+def _force_terms(data: FlightData, fp: FlowProblem, res: GroupResult, i: int) -> list[Term]:
+    """Window means, per force window, of the candidate force terms of axis i."""
+    t = data.t_s
+    X, _ = fp.flow_velocity(res.final.p)
+    k0, k1 = fp.force.idx[:, 0], fp.force.idx[:, 1]
+    span = t[k1] - t[k0]
+
+    def wmean(y: np.ndarray) -> np.ndarray:
+        cs = np.zeros_like(y)
+        cs[1:] = np.cumsum(0.5 * (y[1:] + y[:-1]) * np.diff(t))
+        return (cs[k1] - cs[k0]) / span
+
+    v = np.zeros_like(X)
+    for a, b in data.segments():
+        if b - a > 1:
+            v[:, a:b] = np.gradient(X[:, a:b], t[a:b], axis=1)
+    o = 1 - i
+    ang = (data.pitch_rad, data.roll_rad)
+    climb = np.zeros(data.n)
+    for a, b in data.segments():
+        if b - a > 1:
+            climb[a:b] = np.gradient(data.range_m[a:b], t[a:b])
+    raw = [("velocity", "a drag proportional to speed", "m/s", v[i]),
+           ("velocity |velocity|", "a quadratic (form) drag", "m^2/s^2", v[i] * np.abs(v[i])),
+           ("sign(velocity)", "a constant-magnitude friction-like force", "1", np.tanh(v[i] / 0.05)),
+           ("constant", "a steady force (wind, or a tilt-estimate offset)", "1", np.ones(data.n)),
+           ("tilt", "a thrust or tilt-estimate scale error", "rad", ang[i]),
+           ("height", "ground effect", "m", data.range_m),
+           ("climb rate", "thrust changes while climbing", "m/s", climb),
+           ("other-axis velocity", "coupling between the axes", "m/s", v[o])]
+    return [Term(n, w, u, wmean(y)) for n, w, u, y in raw]
+
+
+def _fit_group(g: Group, settings: Settings, t0: float) -> GroupResult:
+    sel = Selector(g, settings, t0)
+    chosen, final, evidence = sel.select()
+    r_nom = g.residuals(g.nominal)
+    r_fin = g.residuals(final.p)
+    return GroupResult(g, sel, chosen, final, evidence, r_nom, r_fin)
+
+
+def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
+             settings: Settings | None = None) -> Diagnosis:
+    """Diagnose a closed-loop recording against the nominal model ``cfg`` (see the package docs)."""
+    settings = settings or Settings()
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    data = extract(rec, cfg, profile)
+    timings["extract_s"] = time.perf_counter() - t
+    t0 = float(data.t_s[0])
+    ga, ap = attitude_group(data, cfg)
+    gg, gp = gyro_group(data)
+    gf, fp, fstate = flow_group(data, cfg)
+    results: dict[str, GroupResult] = {}
+    for g in (ga, gg, gf):
+        t = time.perf_counter()
+        results[g.name] = _fit_group(g, settings, t0)
+        timings[f"{g.name}_s"] = time.perf_counter() - t
+    if "wind_force" in results["flow"].chosen:
+        results["flow"].selector._search(results["flow"].final.p, None)
+    t = time.perf_counter()
+    report = Report(recording=Path(rec.path).name)
+    report.notes.extend(rec.notes)
+    report.notes.extend(data.notes)
+    report.notes.append(f"profile {data.profile} ({data.profile_reason}); command: {data.command_source}; "
+                        f"{data.n} frames over {data.duration_s:.1f} s in {len(data.segments())} segment(s)")
+    cond = _cond_values(data, fp, results["flow"].final.p)
+    for name, res in results.items():
+        g = res.group
+        for c, ch in enumerate(g.channels):
+            report.baseline_rms[ch] = float(np.sqrt(np.mean(res.r_nominal[c] ** 2)))
+        for e, comp in res.evidence.items():
+            report.findings.append(_finding(e, comp, res, data, cfg, cond))
+        _unexplained(name, res, data, ap, gp, fp, settings, report)
+    report.findings.sort(key=lambda f: (not f.significant, -(f.fit.improvement_pct if f.fit else 0.0)))
+    timings["report_s"] = time.perf_counter() - t
+    return Diagnosis(data, cfg, report, results, ap, gp, fp, fstate, timings)
+
+
+def _finding(effect: str, comp: Comparison, res: GroupResult, data: FlightData, cfg: Config,
+             cond: dict[str, np.ndarray]) -> Finding:
+    g = res.group
+    state = res.final.state if effect == "wind_force" else {}
+    p, sd = _params(effect, g, comp.with_, state)
+    c = comp.primary
+    ch = g.channels[c]
+    fit = Fit(float(comp.heldout_rms_before[c]), float(comp.heldout_rms_after[c]))
+    where: list[Window] = []
+    evidence: dict[str, Any] = {
+        "group": g.name,
+        "channel": ch,
+        "unit": g.units[c],
+        "wald_z": comp.z,
+        "cv_t": comp.cv_t,
+        "delta_bic": comp.dbic,
+        "heldout_by_channel": {g.channels[i]: {"before": float(comp.heldout_rms_before[i]),
+                                               "after": float(comp.heldout_rms_after[i])}
+                               for i in range(len(g.channels))},
+        "method": "exact refit" if effect in res.chosen or "exact" in " ".join(comp.reasons)
+        else "linearised at the chosen model",
+    }
+    if comp.reasons:
+        evidence["why_not"] = comp.reasons
+    if comp.significant:
+        # where the effect's own term changes the final residual by more than the noise
+        cand = next(x for x in g.candidates if x.effect == effect)
+        p_off = comp.with_.p.copy()
+        idx = g.index(cand.params)
+        p_off[idx] = g.nominal[idx]
+        r_with = g.residuals(comp.with_.p)
+        r_without = g.residuals(p_off)
+        sigma = res.selector.sigma
+        best: dict[str, object] = {}
+        for i, chn in enumerate(g.channels):
+            contrib = r_without[i] - r_with[i]
+            if not np.any(np.abs(contrib) > 0):
+                continue
+            if np.sqrt(np.mean(contrib ** 2)) < 0.1 * sigma[i]:
+                continue
+            if effect == "wind_force":
+                continue
+            for iv in effect_windows(g.row_times[i], contrib, float(sigma[i])):
+                where.append(Window(chn, iv.start_s, iv.end_s))
+            if i == c:
+                vals = {k: np.interp(g.row_times[i], data.t_s, v) for k, v in cond.items()}
+                best = conditions(vals, contrib)
+        if effect == "wind_force":
+            for chn, key in (("force_x", "fx"), ("force_y", "fy")):
+                if abs(p[key]) >= 0.25 * math.hypot(p["fx"], p["fy"]):
+                    where.append(Window(chn, p["start_s"], p["end_s"]))
+        if best:
+            evidence["conditions"] = best
+    return Finding(effect=effect, significant=comp.significant, parameters=p, uncertainty=sd,
+                   explanation=explain(effect, p, cfg, comp.significant, sd), where=where, fit=fit,
+                   evidence=evidence)
+
+
+def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProblem, gp: GyroProblem,
+                 fp: FlowProblem, settings: Settings, report: Report) -> None:
+    g = res.group
+    sel = res.selector
+    for c, ch in enumerate(g.channels):
+        r = res.r_final[c]
+        tt = g.row_times[c]
+        if len(r) == 0:
+            continue
+        sigma = float(sel.sigma[c])
+        res.mismatch_windows[ch] = excess_windows(tt, res.r_nominal[c], sigma)
+        windows = excess_windows(tt, r, sigma)
+        res.unexplained_windows[ch] = windows
+        terms = _terms(name, data, ap, gp, fp, res, c)
+        sp = sparse_fit(r, terms, sel.folds[c], sel.K) if terms else None
+        if sp is not None:
+            res.sparse[ch] = sp
+        rms = float(np.sqrt(np.mean(r ** 2)))
+        structured = (sp is not None and sp.best is not None and sp.r2_heldout >= SPARSE_MIN_R2
+                      and math.sqrt(sp.r2_heldout) * rms > g.floors[c])
+        best_text = sp.describe(g.units[c]) if (sp is not None and structured) else None
+        if structured and not windows:
+            report.unexplained.append(Unexplained(ch, float(tt.min()), float(tt.max()), rms, best_text))
+        for iv in windows:
+            report.unexplained.append(Unexplained(ch, iv.start_s, iv.end_s, iv.rms,
+                                                  best_text or "no candidate term fits (a local disturbance)"))
+

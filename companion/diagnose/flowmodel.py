@@ -1,0 +1,341 @@
+"""The translational channels: the flow against the rotation and the plant, and the force balance.
+
+Per axis i (x pairs with pitch, y with roll; s_x = -1, s_y = +1, CONVENTIONS.md) the paper's
+model says the scene angle the flow sensor integrates is
+
+    phi_i(t) = R_i(t) - Y_i(t),   R_i = s_i (angle_i(t) - angle_i(0)),   Y_i = integral(v_i / A) dt
+    v_i' = s_i g tan(angle_i) + F_i / m - (b / m) v_i
+
+The recorded attitude (ATTITUDE) gives R exactly and the tilt acceleration s g tan(angle); the
+recorded flow gives phi; the range gives A. Two residual channels come out of this, each built so
+that the closed loop cannot hide what it measures (the inputs are recorded signals, never a
+simulation of the loop):
+
+``flow_x``, ``flow_y`` (rad): over windows of ``flow_window_s`` the recorded scene angle minus the
+model's, after removing a cubic in time per window and axis (the unknown velocity at the window
+start and a slowly varying force: translation is smooth, so what remains is the rotation content,
+the part the plant's tilt predicts, and how the sensor's geometry distorts them). This is where
+``flow_scale`` (the rotation comes out scaled), ``flow_delay`` (the rotation comes out late),
+``flow_yaw_misalignment`` (one axis' rotation leaks into the other) and, weakly, ``range_offset``
+show.
+
+``force_x``, ``force_y`` (N): over windows of ``force_window_s`` the change in flow-derived velocity
+minus the change the tilt explains, times m / window length: the mean horizontal force the model
+leaves unexplained. Steady drag and wind, which the PI integrator hides in the velocity, show here
+in full (the vehicle must tilt against them). The flow-derived velocity uses the model's sensor
+geometry (scale, turn, delay, range offset), so ``range_offset`` (a velocity scale that changes
+with altitude) and ``flow_scale`` show here too.
+
+Both channels are vectors of window residuals, linear-time in the recording, and are evaluated
+for any parameter vector ``PARAMS`` (nominal = ``NOMINAL``) by ``FlowProblem.residuals``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+from companion.diagnose.channels import FlightData
+
+AXIS_SIGN = (-1.0, 1.0)
+#: parameter vector of the translational model (CONVENTIONS.md names)
+PARAMS = ("scale_x", "scale_y", "yaw", "delay", "offset", "b", "fx", "fy", "gain")
+NOMINAL = np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+IDX = {p: i for i, p in enumerate(PARAMS)}
+
+
+def _cumtrapz(y: np.ndarray, t: np.ndarray) -> np.ndarray:
+    out = np.zeros_like(y)
+    out[1:] = np.cumsum(0.5 * (y[1:] + y[:-1]) * np.diff(t))
+    return out
+
+
+def ramp_integral(t: np.ndarray, start_s: float | np.ndarray, end_s: float | np.ndarray) -> np.ndarray:
+    """G(t) = integral_0^t clip(tau - start, 0, end - start) dtau (s^2): the double integral of a
+    unit force switched on over [start, end). Broadcasts (e.g. start, end of shape (G, 1))."""
+    start = np.asarray(start_s, dtype=float)
+    end = np.asarray(end_s, dtype=float)
+    if start.ndim == 0 and not (math.isfinite(float(start)) and math.isfinite(float(end)) and end > start):
+        return np.zeros_like(t)
+    d = np.maximum(end - start, 0.0)
+    on = np.clip(t - start, 0.0, d)  # time the force has acted by t
+    return 0.5 * on * on + d * np.maximum(t - end, 0.0)
+
+
+@dataclass
+class Windows:
+    """Index structure of one channel's windows (flat frame indices)."""
+
+    idx: np.ndarray  # (n_windows, L) frame indices (flow) or (n_windows, 2) boundary pairs (force)
+    t_start_s: np.ndarray
+    t_end_s: np.ndarray
+
+
+class _Cache:
+    """The last few results of an expensive piece, keyed by the parameters it depends on (a
+    Jacobian varies one parameter at a time, so most pieces repeat)."""
+
+    def __init__(self, size: int = 6) -> None:
+        self.size = size
+        self.items: dict[tuple[float, ...], object] = {}
+
+    def get(self, key: tuple[float, ...], make: Callable[[], Any]) -> Any:
+        if key in self.items:
+            return self.items[key]
+        value = make()
+        if len(self.items) >= self.size:
+            self.items.pop(next(iter(self.items)))
+        self.items[key] = value
+        return value
+
+
+class FlowProblem:
+    """The two translational channels of one flight, ready to evaluate for any parameters.
+
+    ``flow_window_s``: length of the flow-geometry windows; ``force_window_s``: spacing of the
+    force-balance boundaries; ``average_s``: the velocity at a boundary is the mean over this span;
+    ``max_flow_windows``: a longer recording uses this many evenly spread flow windows (25 min of
+    1 s windows pin the sensor geometry far below any tolerance; the force channel uses every window).
+    """
+
+    def __init__(self, data: FlightData, *, mass_kg: float, gravity_m_s2: float, flow_window_s: float = 1.0,
+                 force_window_s: float = 1.0, average_s: float = 0.2, max_flow_windows: int = 1500) -> None:
+        self.data = data
+        self.mass_kg = mass_kg
+        self.g = gravity_m_s2
+        T = data.frame_s
+        self.L1 = max(8, int(round(flow_window_s / T)))
+        self.L2 = max(4, int(round(force_window_s / T)))
+        self.h = max(1, int(round(0.5 * average_s / T)))
+        t = data.t_s
+        n = data.n
+        self.t = t
+        self.A = data.range_m
+        # per-frame signals, per segment
+        self.R = np.zeros((2, n))
+        self.Phi = np.zeros((2, n))
+        self.V = np.zeros((2, n))
+        self.D = np.zeros((2, n))
+        self.Rdot = np.zeros((2, n))
+        self._splines: list[tuple[int, int, CubicSpline]] = []
+        ang = (data.pitch_rad, data.roll_rad)
+        dphi = (data.dphi_x_rad, data.dphi_y_rad)
+        flow_w: list[np.ndarray] = []
+        force_w: list[np.ndarray] = []
+        for a, b in data.segments():
+            ts = t[a:b]
+            for i in (0, 1):
+                s = AXIS_SIGN[i]
+                self.R[i, a:b] = s * (ang[i][a:b] - ang[i][a])
+                self.Phi[i, a:b] = np.cumsum(dphi[i][a:b])
+                acc = s * self.g * np.tan(ang[i][a:b])
+                self.V[i, a:b] = _cumtrapz(acc, ts)
+                self.D[i, a:b] = _cumtrapz(self.V[i, a:b], ts)
+            sp = CubicSpline(ts, self.R[:, a:b].T, axis=0)
+            self._splines.append((a, b, sp))
+            self.Rdot[:, a:b] = sp(ts, 1).T
+            # windows of whole frames; the first and last window of a segment are left out, so that
+            # a delayed (or advanced) signal never reaches past the segment's ends (|delay| < 1 window)
+            m = b - a
+            nw = m // self.L1
+            if nw >= 3:
+                flow_w.append(a + self.L1 + np.arange((nw - 2) * self.L1).reshape(nw - 2, self.L1))
+            bounds = np.arange(a + self.h + self.L2, b - self.h - self.L2, self.L2)
+            if len(bounds) >= 2:
+                force_w.append(np.stack([bounds[:-1], bounds[1:]], axis=1))
+        fwin = np.concatenate(flow_w) if flow_w else np.zeros((0, self.L1), int)
+        if len(fwin) > max_flow_windows:  # a long recording: evenly spread windows are plenty
+            fwin = fwin[np.unique(np.linspace(0, len(fwin) - 1, max_flow_windows).round().astype(int))]
+        self.flow = Windows(fwin, np.zeros(0), np.zeros(0))
+        seg_of = np.searchsorted([b for _a, b in data.segments()], fwin[:, 0], side="right") if len(fwin) \
+            else np.zeros(0, int)
+        self._seg_windows = [(int(np.searchsorted(seg_of, i)), int(np.searchsorted(seg_of, i, side="right")))
+                             for i in range(len(data.segments()))]
+        if len(self.flow.idx):
+            self.flow.t_start_s = t[self.flow.idx[:, 0]]
+            self.flow.t_end_s = t[self.flow.idx[:, -1]]
+        fw = np.concatenate(force_w) if force_w else np.zeros((0, 2), int)
+        self.force = Windows(fw, t[fw[:, 0]] if len(fw) else np.zeros(0), t[fw[:, 1]] if len(fw) else np.zeros(0))
+        # projector removing a cubic in time from each flow window (same for every window)
+        tau = np.linspace(-1.0, 1.0, self.L1)
+        basis = np.vander(tau, 4, increasing=True)
+        q, _ = np.linalg.qr(basis)
+        self.P = np.eye(self.L1) - q @ q.T
+        self._Amid = 0.5 * (self.A[1:] + self.A[:-1])
+        self._first = np.zeros(n, dtype=bool)
+        self._seg_t0 = np.zeros(n)
+        self._seg_last = np.zeros(n, dtype=int)
+        for a, b in data.segments():
+            self._first[a] = True
+            self._seg_t0[a:b] = t[a]
+            self._seg_last[a:b] = b - 1
+        # windowed constants of the flow channel
+        W = self.flow.idx
+        self._Phiw = self.Phi[:, W]
+        self._rot_cache = _Cache()
+        self._trans_cache = _Cache()
+        self._vel_cache = _Cache(4)
+        self._geo_cache = _Cache()
+        self._phi_cache = _Cache(3)
+        self._dPhi = np.zeros_like(self.Phi)
+        for a, b in data.segments():
+            if b - a > 1:
+                self._dPhi[:, a:b] = np.gradient(self.Phi[:, a:b], t[a:b], axis=1)
+        # boundary indices and spans of the force channel
+        F = self.force.idx
+        self._k0, self._k1 = F[:, 0], F[:, 1]
+        h = self.h
+        self._span = t[self._k1] - t[self._k0]
+        self._den0 = t[self._k0 + h] - t[self._k0 - h]
+        self._den1 = t[self._k1 + h] - t[self._k1 - h]
+        self._dv_tilt = self._bavg(self.D, self._k1, self._den1) - self._bavg(self.D, self._k0, self._den0)
+
+    # -- model pieces --------------------------------------------------------------------------
+
+    def _rotation_at(self, delay_s: float) -> np.ndarray:
+        """R(t - delay) at the flow windows' frames, (2, n_windows, L1): cubic spline through the
+        recorded attitude of each segment (held at the segment's ends)."""
+        W = self.flow.idx
+        if delay_s == 0.0:
+            return self.R[:, W]
+        return self._rot_cache.get((float(delay_s),), lambda: self._rotation_at_uncached(delay_s))
+
+    def _rotation_at_uncached(self, delay_s: float) -> np.ndarray:
+        W = self.flow.idx
+        out = np.empty((2,) + W.shape)
+        for (a, b, sp), (w0, w1) in zip(self._splines, self._seg_windows, strict=True):
+            if w1 > w0:
+                tq = np.clip(self.t[W[w0:w1]] - delay_s, self.t[a], self.t[b - 1])
+                out[:, w0:w1] = np.moveaxis(sp(tq), -1, 0)
+        return out
+
+    def _shifted(self, y: np.ndarray, dy: np.ndarray, delay_s: float, idx: np.ndarray | None = None) -> np.ndarray:
+        """y(t - delay) at frames ``idx`` (all frames when None) by cubic Hermite interpolation
+        between frames from values y and derivatives dy (shape (..., n)), held at each segment's
+        ends."""
+        t = self.t
+        k = np.arange(len(t)) if idx is None else idx
+        if delay_s == 0.0:
+            return y[..., k]
+        tq = np.clip(t[k] - delay_s, self._seg_t0[k], t[self._seg_last[k]])
+        j = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, len(t) - 2)
+        j = np.minimum(j, np.maximum(self._seg_last[k] - 1, 0))
+        h = t[j + 1] - t[j]
+        u = np.clip((tq - t[j]) / h, 0.0, 1.0)
+        h00 = (1 + 2 * u) * (1 - u) ** 2
+        h10 = u * (1 - u) ** 2
+        h01 = u * u * (3 - 2 * u)
+        h11 = u * u * (u - 1)
+        return h00 * y[..., j] + h10 * h * dy[..., j] + h01 * y[..., j + 1] + h11 * h * dy[..., j + 1]
+
+    def model_translation(self, offset: float, delay_s: float = 0.0, power: int = 1) -> np.ndarray:
+        """The plant's translational scene angle in each flow window, delayed by ``delay_s``:
+        integral of (V(tau) - V(t_start)) / (A(tau) - offset)^power over [t_start, t - delay],
+        up to a constant per window; shape (2, n_windows, L1). V is the velocity the recorded tilt
+        gives (the window's unknown start velocity and a constant force are the cubic's job)."""
+        return self._trans_cache.get((float(offset), float(delay_s), float(power)),
+                                     lambda: self._translation_uncached(offset, delay_s, power))
+
+    def _translation_uncached(self, offset: float, delay_s: float, power: int) -> np.ndarray:
+        W = self.flow.idx
+        ainv = 1.0 / (self.A - offset) ** power
+        f1 = self.V * ainv
+        I1 = self._cum(f1)
+        I2 = self._cum(ainv)
+        I1 = self._shifted(I1, f1, delay_s, W)
+        I2 = self._shifted(I2, ainv, delay_s, W)
+        return I1 - self.V[:, W][:, :, :1] * I2
+
+    def _cum(self, f: np.ndarray) -> np.ndarray:
+        """Trapezoidal integral of f over time, restarting at each segment (constant offsets are
+        irrelevant: every use is within one segment)."""
+        inc = 0.5 * (f[..., 1:] + f[..., :-1]) * np.diff(self.t)
+        inc[..., self._first[1:]] = 0.0
+        out = np.zeros_like(f)
+        out[..., 1:] = np.cumsum(inc, axis=-1)
+        return out
+
+    def flow_residual(self, p: np.ndarray) -> np.ndarray:
+        """``flow_x``, ``flow_y`` window residuals (rad), shape (2, n_windows, L1), cubic removed."""
+        W = self.flow.idx
+        if len(W) == 0:
+            return np.zeros((2, 0, self.L1))
+        kx, ky, yaw, delay, offset = p[0], p[1], p[2], p[3], p[4]
+        body = p[8] * self._rotation_at(delay) - self.model_translation(offset, delay)
+        c, s = math.cos(yaw), math.sin(yaw)
+        e = self._Phiw.copy()
+        e[0] -= (c * body[0] + s * body[1]) / kx
+        e[1] -= (-s * body[0] + c * body[1]) / ky
+        return e @ self.P
+
+    def flow_velocity(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Odometry from the flow under the model's sensor geometry: X (2, n) in m (per segment,
+        from 0) and Y (2, n) the translational scene angle integral(v/A) in rad."""
+        key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8]))
+        return self._vel_cache.get(key, lambda: self._flow_velocity_uncached(p))
+
+    def _flow_velocity_uncached(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        kx, ky, yaw, delay, offset = p[0], p[1], p[2], p[3], p[4]
+        phi = self.Phi
+        if delay != 0.0:  # the flow at t + delay: cubic Hermite with the frames' mean rates
+            phi = self._phi_cache.get((float(delay),), lambda: self._shifted(self.Phi, self._dPhi, -delay))
+        sx, sy = kx * phi[0], ky * phi[1]
+        c, s = math.cos(yaw), math.sin(yaw)
+        bx = c * sx - s * sy
+        by = s * sx + c * sy
+        Y = p[8] * self.R - np.stack([bx, by])
+        X = np.zeros_like(Y)
+        inc = (self._Amid - offset) * np.diff(Y, axis=1)
+        inc[:, self._first[1:]] = 0.0  # no increment across a gap
+        X[:, 1:] = np.cumsum(inc, axis=1)
+        return X, Y
+
+    def force_parts(self, p: np.ndarray, start_s: float = math.nan, end_s: float = math.nan) -> dict[str, np.ndarray]:
+        """Boundary-averaged pieces of the force balance (each (2, n_windows), m/s per window):
+        ``dv`` flow velocity change, ``dv_tilt`` what the tilt explains, ``dx`` the window's
+        averaged displacement change (drag regressor, m), ``dt1`` the wind regressor (s)."""
+        dv, dx = self._geometry_parts(p)
+        k0, k1, d0, d1 = self._k0, self._k1, self._den0, self._den1
+        h = self.h
+        t = self.t
+
+        def ravg(k: np.ndarray, den: np.ndarray) -> np.ndarray:
+            return (ramp_integral(t[k + h], start_s, end_s) - ramp_integral(t[k - h], start_s, end_s)) / den
+
+        return {
+            "dv": dv,
+            "dv_tilt": self._dv_tilt,
+            "dx": dx,
+            "dt1": np.broadcast_to(ravg(k1, d1) - ravg(k0, d0), (2, len(k0))).copy(),
+            "span_s": self._span,
+        }
+
+    def _geometry_parts(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8]))
+        return self._geo_cache.get(key, lambda: self._geometry_uncached(p))
+
+    def _geometry_uncached(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        X, _ = self.flow_velocity(p)
+        IX = np.zeros_like(X)
+        IX[:, 1:] = np.cumsum(0.5 * (X[:, 1:] + X[:, :-1]) * np.diff(self.t), axis=1)  # used within segments
+        k0, k1, d0, d1 = self._k0, self._k1, self._den0, self._den1
+        return (self._bavg(X, k1, d1) - self._bavg(X, k0, d0), self._bavg(IX, k1, d1) - self._bavg(IX, k0, d0))
+
+    def _bavg(self, Z: np.ndarray, k: np.ndarray, den: np.ndarray) -> np.ndarray:
+        """Mean of the derivative of Z over [t_k-h, t_k+h]: (Z(k+h) - Z(k-h)) / span."""
+        return (Z[..., k + self.h] - Z[..., k - self.h]) / den
+
+    def force_residual(self, p: np.ndarray, start_s: float = math.nan, end_s: float = math.nan) -> np.ndarray:
+        """``force_x``, ``force_y`` (N), shape (2, n_windows): the mean force over each window the
+        model leaves unexplained."""
+        if len(self.force.idx) == 0:
+            return np.zeros((2, 0))
+        f = self.force_parts(p, start_s, end_s)
+        m = self.mass_kg
+        e = f["dv"] - f["dv_tilt"] + (p[5] / m) * f["dx"] - (np.array([[p[6]], [p[7]]]) / m) * f["dt1"]
+        return e * m / f["span_s"]

@@ -1,0 +1,161 @@
+"""The three residual groups the diagnosis fits, each on the channels where its effects show.
+
+| group | channels (unit) | candidate effects |
+|---|---|---|
+| attitude | ``attitude_roll``, ``attitude_pitch`` (rad) | ``attitude_dynamics``, ``attitude_delay`` |
+| gyro | ``gyro_x``, ``gyro_y`` (rad/s) | ``gyro_bias`` |
+| flow | ``flow_x``, ``flow_y`` (rad), ``force_x``, ``force_y`` (N) | ``flow_scale``, ``flow_yaw_misalignment``, |
+| | | ``flow_delay``, ``flow_rotation_gain``, ``range_offset``, ``linear_drag``, ``wind_force`` |
+
+The groups share no parameters and no inputs that another group's effects change (the flow
+group uses the recorded attitude, not the gyro, for the rotation; the attitude group uses the
+recorded command and attitude), so they are fitted and chosen independently.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.config import Config
+from companion.diagnose.attitude import AttitudeProblem
+from companion.diagnose.channels import FlightData
+from companion.diagnose.flowmodel import IDX, NOMINAL, PARAMS, FlowProblem
+from companion.diagnose.select import Candidate, Group
+from companion.diagnose.wind import WindWindow, kernel_regressor, locate
+
+
+def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProblem]:
+    ap = AttitudeProblem(data)
+    wp, z = cfg.airframe.omega_p_rad_s, cfg.airframe.zeta
+    T = data.frame_s
+
+    def residuals(p: np.ndarray) -> list[np.ndarray]:
+        e = ap.residual(float(p[0]), float(p[1]), float(p[2]))
+        return [e[0], e[1]]
+
+    g = Group(
+        name="attitude", params=("omega_p", "zeta", "delay"), nominal=np.array([wp, z, 0.0]),
+        steps=np.array([0.005 * wp, 0.005, 0.0005]), lower=np.array([0.3, 0.05, -T]),
+        upper=np.array([80.0, 5.0, 0.25]), channels=("attitude_roll", "attitude_pitch"), units=("rad", "rad"),
+        floors=(1e-4, 1e-4), residuals=residuals, row_times=[data.t_s, data.t_s],
+        candidates=[Candidate("attitude_dynamics", ("omega_p", "zeta")), Candidate("attitude_delay", ("delay",))])
+    return g, ap
+
+
+class GyroProblem:
+    """Gyro against the attitude, frame by frame in integrated form (the paper's per-axis
+    kinematics, angle' = rate): the attitude change over each frame divided by its length, minus
+    the trapezoidal mean of the gyro at the frame's two ends. The command changes at the frames,
+    so within a frame the rate is smooth and the trapezoid is exact to (T^2/12) rate'', far below
+    a gyro's resolution; a derivative of the attitude would not be (its second derivative jumps
+    at every frame). Rows: every frame but the first of each segment, at the frame's midpoint."""
+
+    def __init__(self, data: FlightData) -> None:
+        rows = np.ones(data.n, dtype=bool)
+        for a, _b in data.segments():
+            rows[a] = False
+        k = np.flatnonzero(rows)
+        self.k = k
+        t = data.t_s
+        dt = t[k] - t[k - 1]
+        self.t_s = 0.5 * (t[k] + t[k - 1])
+        ang = np.stack([data.roll_rad, data.pitch_rad])
+        gyr = np.stack([data.gyro_x_rad_s, data.gyro_y_rad_s])
+        self.rate = (ang[:, k] - ang[:, k - 1]) / dt  # mean body rate over the frame from the attitude
+        self.gyro = 0.5 * (gyr[:, k] + gyr[:, k - 1])
+        self.angle = 0.5 * (ang[:, k] + ang[:, k - 1])
+        self.r = self.gyro - self.rate
+
+
+def gyro_group(data: FlightData) -> tuple[Group, GyroProblem]:
+    gp = GyroProblem(data)
+
+    def residuals(p: np.ndarray) -> list[np.ndarray]:
+        return [gp.r[0] - p[0], gp.r[1] - p[1]]
+
+    g = Group(
+        name="gyro", params=("bias_x", "bias_y"), nominal=np.zeros(2), steps=np.array([1e-4, 1e-4]),
+        lower=np.array([-2.0, -2.0]), upper=np.array([2.0, 2.0]), channels=("gyro_x", "gyro_y"),
+        units=("rad/s", "rad/s"), floors=(max(data.gyro_resolution_rad_s, 1e-5),) * 2, residuals=residuals,
+        row_times=[gp.t_s, gp.t_s],
+        candidates=[Candidate("gyro_bias", ("bias_x", "bias_y"))], linear=("bias_x", "bias_y"))
+    return g, gp
+
+
+class FlowGroupState:
+    """The flow group's wind window, found by search (``wind.locate``) and kept between fits."""
+
+    def __init__(self, fp: FlowProblem) -> None:
+        self.fp = fp
+        self.window: WindWindow | None = None
+
+    @property
+    def start_end(self) -> tuple[float, float]:
+        if self.window is None:
+            return math.nan, math.nan
+        return self.window.start_s, self.window.end_s
+
+    def as_dict(self) -> dict[str, float]:
+        s, e = self.start_end
+        w = self.window
+        return {"start_s": s, "end_s": e, "start_sd": w.start_sd if w else math.nan,
+                "end_sd": w.end_sd if w else math.nan}
+
+    def search(self, p: np.ndarray, masks: list[np.ndarray] | None) -> list[np.ndarray]:
+        """Locate the wind window on the rows of ``masks`` from the force residual at p without
+        wind; returns d(residual)/d(fx, fy) per channel (zero on the flow channels)."""
+        q = p.copy()
+        q[IDX["fx"]] = q[IDX["fy"]] = 0.0
+        W = self.fp.force.idx
+        nf = self.fp.flow.idx.size
+        self.window = None
+        cols = [np.zeros((nf, 2)), np.zeros((nf, 2)), np.zeros((len(W), 2)), np.zeros((len(W), 2))]
+        if len(W) == 0:
+            return cols
+        e = self.fp.force_residual(q)
+        m = None if masks is None else (masks[2] & masks[3])
+        self.window = locate(e, self.fp.t, W[:, 0], W[:, 1], self.fp.h, m)
+        if self.window is not None:
+            x = kernel_regressor(self.fp.t, W[:, 0], W[:, 1], self.fp.h, self.window.start_s, self.window.end_s)
+            cols[2][:, 0] = -x  # the force residual is (unexplained force) - F x
+            cols[3][:, 1] = -x
+        return cols
+
+
+def _positive_drag(p: dict[str, float]) -> str | None:
+    return "a negative drag (the air pushing the vehicle along) is not physical" if p["b"] <= 0 else None
+
+
+def flow_group(data: FlightData, cfg: Config) -> tuple[Group, FlowProblem, FlowGroupState]:
+    fp = FlowProblem(data, mass_kg=cfg.airframe.mass_kg, gravity_m_s2=cfg.airframe.gravity_m_s2)
+    state = FlowGroupState(fp)
+
+    def residuals(p: np.ndarray) -> list[np.ndarray]:
+        s, e = state.start_end
+        f = fp.flow_residual(p)
+        r = fp.force_residual(p, s, e)
+        return [f[0].ravel(), f[1].ravel(), r[0], r[1]]
+
+    tf = data.t_s[fp.flow.idx].ravel() if len(fp.flow.idx) else np.zeros(0)
+    tw = 0.5 * (fp.force.t_start_s + fp.force.t_end_s)
+    a_min = float(np.nanmin(data.range_m))
+    lower = np.array([0.3, 0.3, -math.pi / 2, -0.1, -1.0, -5.0, -50.0, -50.0, 0.3])
+    upper = np.array([3.0, 3.0, math.pi / 2, 0.3, a_min - 0.05, 10.0, 50.0, 50.0, 3.0])
+    assert len(lower) == len(PARAMS)
+    g = Group(
+        name="flow", params=PARAMS, nominal=NOMINAL.copy(),
+        steps=np.array([1e-3, 1e-3, 1e-3, 1e-3, 2e-3, 1e-2, 1e-2, 1e-2, 1e-3]), lower=lower, upper=upper,
+        channels=("flow_x", "flow_y", "force_x", "force_y"), units=("rad", "rad", "N", "N"),
+        floors=(max(data.flow_resolution_rad, 1e-5),) * 2 + (1e-3, 1e-3), residuals=residuals,
+        row_times=[tf, tf, tw, tw],
+        candidates=[Candidate("flow_scale", ("scale_x", "scale_y")),
+                    Candidate("flow_yaw_misalignment", ("yaw",)),
+                    Candidate("flow_delay", ("delay",)),
+                    Candidate("flow_rotation_gain", ("gain",)),
+                    Candidate("range_offset", ("offset",)),
+                    Candidate("linear_drag", ("b",), physical=_positive_drag),
+                    Candidate("wind_force", ("fx", "fy"))],
+        linear=("b", "fx", "fy"), search=state.search, state=state.as_dict, searched_effect="wind_force")
+    return g, fp, state

@@ -1,0 +1,641 @@
+"""Fitting candidate effects and choosing among them: blocked cross-validation, jackknife, BIC.
+
+A *group* is a residual model over some channels with a parameter vector (nominal = the paper's
+model) and candidate effects, each freeing some of the parameters (``Candidate``). The
+``Selector`` does, for one group:
+
+1. Noise scale per channel: a robust standard deviation (MAD) of the residual of the *largest*
+   model (every candidate free), floored at the channel's resolution. Residuals are weighted by it,
+   so channels in different units add up as chi-square.
+2. Blocked K-fold cross-validation: time is cut into blocks of ``block_s`` and block j belongs to
+   fold j mod K (interleaved, so an effect confined to part of the flight is seen by every training
+   set, and blocks much longer than the residuals' correlation time keep folds nearly independent).
+3. Forward selection on the linearisation at the largest model's fit (every candidate subset and
+   fold is a small linear least-squares problem from per-fold sufficient statistics): at each step
+   the candidate that lowers the held-out error most is added if it *earns its parameters*:
+   - held-out chi-square lower in the paired per-fold comparison (t >= ``cv_t_min``),
+   - its parameters further than ``z_min`` sigma from the nominal (Wald test, jackknife covariance
+     over the folds, which holds under correlated residuals),
+   - the information criterion (BIC) lower with it, and
+   - the held-out RMS of its primary channel lower by at least ``min_improvement_pct``.
+   A selected effect is dropped again when, refitted with the others, it no longer passes.
+4. The chosen model is refitted exactly (Gauss-Newton with the fixed Jacobian, on the exact
+   residual), on all data and on each fold's training set; its held-out residual and that of the
+   model without each of its effects (and with each rejected effect added) are exact too.
+
+Everything is linear-time in the recording: the residual functions are, and the selection works
+on K x P x P statistics.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """An effect of CONVENTIONS.md (or an added one) and the group parameters it frees.
+
+    ``physical``: optional check of fitted values (name -> value); returns why they are not
+    physical (e.g. a negative drag), or None."""
+
+    effect: str
+    params: tuple[str, ...]
+    physical: Callable[[dict[str, float]], str | None] | None = None
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Selection settings (see the module docstring)."""
+
+    folds: int = 8
+    block_s: float = 5.0
+    #: time clusters of the cluster-robust covariance (longer than the residuals' correlation)
+    cluster_s: float = 10.0
+    z_min: float = 3.0
+    cv_t_min: float = 2.0
+    min_improvement_pct: float = 2.0
+    chord_iterations: int = 2
+
+
+@dataclass
+class Group:
+    """A residual model over some channels.
+
+    ``residuals(p)`` returns one 1-D array per channel (fixed length and row order for every p);
+    ``row_times[c]`` the time (s) of each row of channel c (for folds and windows);
+    ``floors[c]`` the channel's resolution (a noise scale below it is not believed);
+    ``steps`` finite-difference steps per parameter; ``lower``/``upper`` bounds.
+    """
+
+    name: str
+    params: tuple[str, ...]
+    nominal: np.ndarray
+    steps: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    channels: tuple[str, ...]
+    units: tuple[str, ...]
+    floors: tuple[float, ...]
+    residuals: Callable[[np.ndarray], list[np.ndarray]]
+    row_times: list[np.ndarray]
+    candidates: list[Candidate]
+    #: parameters the residuals are linear in (their Jacobian column needs one evaluation)
+    linear: tuple[str, ...] = ()
+    #: optional, for an effect with a searched part (the wind window): ``search(p, train)`` finds
+    #: that part on the rows of ``train`` (per-channel masks; all rows when None) from the residual
+    #: at p with the effect's own (linear) parameters zeroed, keeps it, and returns the residual's
+    #: derivative with respect to those parameters, one (rows, n) array per channel
+    search: Callable[[np.ndarray, list[np.ndarray] | None], list[np.ndarray]] | None = None
+    #: the searched part as numbers (e.g. start_s, end_s), for the report
+    state: Callable[[], dict[str, float]] | None = None
+    #: the effect that has a searched part
+    searched_effect: str | None = None
+
+    def index(self, names: Sequence[str]) -> list[int]:
+        return [self.params.index(n) for n in names]
+
+
+@dataclass
+class ModelScore:
+    """A model (set of effects) scored by cross-validation and on all data."""
+
+    effects: tuple[str, ...]
+    free: list[int]
+    p: np.ndarray  # full-data fit
+    p_folds: np.ndarray  # (K, P) fits on each fold's training set
+    cov: np.ndarray  # (P, P) covariance of p (jackknife, floored by the asymptotic one), zero outside free
+    fold_sse: np.ndarray  # (K,) held-out weighted SSE per fold
+    heldout_ss: np.ndarray  # (C,) held-out unweighted sum of squares per channel (summed over folds)
+    full_sse: float  # weighted SSE on all data
+    n_rows: int
+    #: the searched part's state on all data and per fold (e.g. the wind window)
+    state: dict[str, float] = field(default_factory=dict)
+    fold_states: list[dict[str, float]] = field(default_factory=list)
+
+    @property
+    def cv_sse(self) -> float:
+        return float(np.sum(self.fold_sse))
+
+    def bic(self) -> float:
+        n = max(self.n_rows, 1)
+        return n * math.log(max(self.full_sse, 1e-300) / n) + len(self.free) * math.log(n)
+
+
+@dataclass
+class Comparison:
+    """One effect's evidence: the model with it against the model without it."""
+
+    effect: str
+    with_: ModelScore
+    without: ModelScore
+    z: float  # Wald statistic as an equivalent normal z
+    cv_t: float  # paired t of the per-fold held-out improvement
+    dbic: float  # BIC(with) - BIC(without)
+    heldout_rms_before: np.ndarray  # (C,) per channel
+    heldout_rms_after: np.ndarray
+    primary: int  # channel index where it improves most (relative)
+    significant: bool = False
+    reasons: list[str] = field(default_factory=list)
+
+    @property
+    def improvement_pct(self) -> float:
+        b, a = self.heldout_rms_before[self.primary], self.heldout_rms_after[self.primary]
+        return 100.0 * (b - a) / b if b > 0 else 0.0
+
+
+def block_ids(t_s: np.ndarray, t0_s: float, settings: Settings) -> np.ndarray:
+    """Time block of each time: floor((t - t0) / block_s)."""
+    return np.floor((t_s - t0_s) / settings.block_s).astype(int)
+
+
+def robust_std(x: np.ndarray) -> float:
+    x = x[np.isfinite(x)]
+    if len(x) == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+
+
+class Selector:
+    """Fit and choose among a group's candidate effects (see the module docstring)."""
+
+    def __init__(self, group: Group, settings: Settings, t0_s: float) -> None:
+        self.g = group
+        self.s = settings
+        self.K = settings.folds
+        self.cvblocks = [np.maximum(block_ids(t, t0_s, settings), 0) for t in group.row_times]
+        self.folds = [b % settings.folds for b in self.cvblocks]
+        self.per_cluster = max(1, int(round(settings.cluster_s / settings.block_s)))
+        self.n_blocks = int(max((int(b.max()) for b in self.cvblocks if len(b)), default=0)) // self.per_cluster + 1
+        self.n_rows = int(sum(len(t) for t in group.row_times))
+        self.P = len(group.params)
+        self.sigma = np.ones(len(group.channels))
+        self.r_nominal = group.residuals(group.nominal)
+        self.sigma = self._noise(self.r_nominal)
+        self.widx: list[int] = []
+        if group.searched_effect is not None:
+            cand = next(c for c in group.candidates if c.effect == group.searched_effect)
+            self.widx = group.index(cand.params)
+        # the largest model, fitted from the nominal (Levenberg-Marquardt), and linearised there
+        self.all_free = sorted({i for c in group.candidates for i in group.index(c.params)})
+        self._linearise(group.nominal)
+        p_full = self._levenberg(group.nominal.copy(), self.all_free)
+        if self.widx:
+            self._search(p_full, None)
+            p_full = self._levenberg(p_full, self.all_free)
+        self.p_full = p_full
+        self.sigma = self._noise(group.residuals(p_full))
+        self._relinearise(p_full)
+
+    def _relinearise(self, p: np.ndarray) -> None:
+        """Linearise at p (the searched effect's own parameters from zero) and, for the searched
+        effect, keep per-fold statistics with its part found on each training set alone."""
+        base = p.copy()
+        base[self.widx] = self.g.nominal[self.widx]
+        self._linearise(base)
+        self.state_full = self.g.state() if (self.widx and self.g.state) else {}
+        self.variants: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        if self.widx:
+            J_full = [j.copy() for j in self.J]
+            G0, gv0, ss0 = self.G, self.gv, self.ss
+            Gb0, gvb0 = self.Gb.copy(), self.gvb.copy()
+            # only channels the searched effect acts on change between variants
+            moving = [c for c in range(len(self.J)) if np.any(self.J[c][:, self.widx])]
+            for k in range(self.K):
+                self._search(base, [f != k for f in self.folds])
+                G, gv, ss = G0.copy(), gv0.copy(), ss0.copy()
+                Gm, gvm, ssm = self._stats(moving)
+                G[:, moving], gv[:, moving], ss[:, moving] = Gm[:, moving], gvm[:, moving], ssm[:, moving]
+                self.variants.append((G, gv, ss))
+            self.J = J_full
+            self.Gb, self.gvb = Gb0, gvb0
+            self._search(base, None)
+
+    def _levenberg(self, p: np.ndarray, free: Sequence[int], iterations: int = 15) -> np.ndarray:
+        """Levenberg-Marquardt on the exact residual from p over all rows, the Jacobian started
+        from the stored linearisation and kept up to date by Broyden's rank-one updates (no new
+        finite differences): robust to large departures from the nominal model, linear-time."""
+        free = list(free)
+        if not free:
+            return p.copy()
+        p = p.copy()
+        lo, hi = self.g.lower[free], self.g.upper[free]
+        J = [j[:, free].copy() for j in self.J]
+        r = self.weighted(p)
+        sse = float(sum(float(x @ x) for x in r))
+        lam = 1e-3
+        for _ in range(iterations):
+            A = sum(j.T @ j for j in J)
+            grad = sum(j.T @ x for j, x in zip(J, r, strict=True))
+            accepted = False
+            for _try in range(8):
+                step = -_solve(A + lam * np.diag(np.diag(A) + 1e-12), grad)
+                new = np.clip(p[free] + step, lo, hi)
+                actual = new - p[free]
+                if not np.any(actual):
+                    break
+                q = p.copy()
+                q[free] = new
+                r_new = self.weighted(q)
+                sse_new = float(sum(float(x @ x) for x in r_new))
+                den = float(actual @ actual)
+                for c in range(len(J)):  # Broyden: make J reproduce the step just taken
+                    J[c] += np.outer(r_new[c] - r[c] - J[c] @ actual, actual) / den
+                if sse_new < sse:
+                    gain = (sse - sse_new) / max(sse, 1e-300)
+                    p, r, sse = q, r_new, sse_new
+                    lam = max(lam / 3.0, 1e-9)
+                    accepted = gain > 1e-6  # a relative gain this small: converged
+                    break
+                lam *= 4.0
+                A = sum(j.T @ j for j in J)
+                grad = sum(j.T @ x for j, x in zip(J, r, strict=True))
+            if not accepted or np.all(np.abs(actual) < 1e-4 * self.g.steps[free]):
+                break
+        return p
+
+    # -- residuals and linearisation -------------------------------------------------------------
+
+    def _noise(self, res: list[np.ndarray]) -> np.ndarray:
+        return np.array([max(robust_std(r), f, 1e-300) for r, f in zip(res, self.g.floors, strict=True)])
+
+    def weighted(self, p: np.ndarray) -> list[np.ndarray]:
+        """Residuals divided by each channel's noise scale; a non-finite row counts as 0."""
+        return [np.nan_to_num(r / s, nan=0.0, posinf=0.0, neginf=0.0)
+                for r, s in zip(self.g.residuals(p), self.sigma, strict=True)]
+
+    def jacobian(self, p: np.ndarray, cols: Sequence[int]) -> list[np.ndarray]:
+        """Weighted Jacobian per channel (rows, len(cols)) by forward differences with the group's
+        steps (exact for the parameters the residuals are linear in; it only steers the fits,
+        which converge on the exact residual)."""
+        out = [np.zeros((len(t), len(cols))) for t in self.g.row_times]
+        r0 = self.weighted(p)
+        for j, i in enumerate(cols):
+            h = self.g.steps[i]
+            pp = p.copy()
+            pp[i] += h
+            rp = self.weighted(pp)
+            for c in range(len(out)):
+                out[c][:, j] = (rp[c] - r0[c]) / h
+        return out
+
+    def _search(self, p: np.ndarray, train: list[np.ndarray] | None) -> None:
+        """Run the group's search and put its columns into the stored Jacobian."""
+        assert self.g.search is not None
+        cols = self.g.search(p, train)
+        for c in range(len(self.J)):
+            self.J[c][:, self.widx] = cols[c] / self.sigma[c]
+
+    def _linearise(self, p: np.ndarray) -> None:
+        """Jacobian and per (fold, channel) sufficient statistics of the linearisation at p."""
+        self.p_lin = p.copy()
+        others = [i for i in range(self.P) if i not in self.widx]
+        Jo = self.jacobian(p, others)
+        self.J = [np.zeros((len(t), self.P)) for t in self.g.row_times]
+        for c in range(len(self.J)):
+            self.J[c][:, others] = Jo[c]
+        if self.widx:
+            self._search(p, None)
+        self.r_lin = self.weighted(p)
+        self.G, self.gv, self.ss = self._stats()
+        self.cnt = np.array([[np.count_nonzero(f == k) for f in self.folds] for k in range(self.K)], dtype=float)
+
+    def _stats(self, channels: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per (fold, channel): J'J, J'r, r'r of the linearisation; per time cluster (summed over
+        channels) J'J and J'r for the cluster-robust covariance (``_cov``). One pass: the sums
+        are taken per cross-validation block, then added up into folds and clusters."""
+        C, K, P = len(self.g.channels), self.K, self.P
+        G = np.zeros((K, C, P, P))
+        gv = np.zeros((K, C, P))
+        ss = np.zeros((K, C))
+        self.Gb = np.zeros((self.n_blocks, P, P))
+        self.gvb = np.zeros((self.n_blocks, P))
+        for c in range(C) if channels is None else channels:
+            J, r, blk = self.J[c], self.r_lin[c], self.cvblocks[c]
+            if len(r) == 0:
+                continue
+            order = np.argsort(blk, kind="stable")
+            bs = blk[order]
+            starts = np.concatenate([[0], np.flatnonzero(np.diff(bs)) + 1])
+            stops = np.concatenate([starts[1:], [len(bs)]])
+            Jo, ro = J[order], r[order]
+            gsum = np.add.reduceat(Jo * ro[:, None], starts, axis=0)
+            rsum = np.add.reduceat(ro * ro, starts)
+            for i, (a, b) in enumerate(zip(starts, stops, strict=True)):
+                blk_id = int(bs[a])
+                Ga = Jo[a:b].T @ Jo[a:b]
+                k = blk_id % K
+                G[k, c] += Ga
+                gv[k, c] += gsum[i]
+                ss[k, c] += rsum[i]
+                cl = blk_id // self.per_cluster
+                self.Gb[cl] += Ga
+                self.gvb[cl] += gsum[i]
+        return G, gv, ss
+
+    def _gauss_newton(self, p: np.ndarray, free: Sequence[int], train: list[np.ndarray] | None, *,
+                      iterations: int) -> np.ndarray:
+        """Chord iterations on the exact residual: Gauss-Newton steps with the stored Jacobian
+        over the rows of ``train`` (per-channel masks; all rows when None). They converge to the
+        exact least-squares fit of the free parameters (the Jacobian only steers)."""
+        free = list(free)
+        if not free:
+            return p.copy()
+        p = p.copy()
+        lo, hi = self.g.lower[free], self.g.upper[free]
+        A = np.zeros((len(free), len(free)))
+        for c in range(len(self.J)):
+            Jc = self.J[c][:, free]
+            Jm = Jc if train is None else Jc * train[c][:, None]
+            A += Jm.T @ Jc
+        for _ in range(iterations):
+            r = self.weighted(p)
+            b = np.zeros(len(free))
+            for c in range(len(r)):
+                rc = r[c] if train is None else np.where(train[c], r[c], 0.0)
+                b += rc @ self.J[c][:, free]
+            new = np.clip(p[free] - _solve(A, b), lo, hi)
+            done = np.all(np.abs(new - p[free]) < 1e-3 * self.g.steps[free])
+            p[free] = new
+            if done:
+                break
+        return p
+
+    # -- linearised scoring ----------------------------------------------------------------------
+
+    def _delta(self, free: list[int], train: np.ndarray, st: tuple[np.ndarray, np.ndarray, np.ndarray]
+               ) -> np.ndarray:
+        """Parameter change from p_lin (full vector) minimising the linearised SSE over the
+        training folds ``train`` (bool (K,)), with the other parameters at their nominal values."""
+        G_all, gv_all, _ = st
+        d = self.g.nominal - self.p_lin
+        fixed = [i for i in range(self.P) if i not in free]
+        if free:
+            G = G_all[train].sum(axis=(0, 1))
+            gv = gv_all[train].sum(axis=(0, 1))
+            b = gv[free] + G[np.ix_(free, fixed)] @ d[fixed]
+            d[free] = -_solve(G[np.ix_(free, free)], b)
+        return d
+
+    @staticmethod
+    def _sse(d: np.ndarray, ks: np.ndarray, st: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+        """Linearised weighted SSE per channel over folds ``ks`` at p_lin + d."""
+        G = st[0][ks].sum(axis=0)
+        gv = st[1][ks].sum(axis=0)
+        ss = st[2][ks].sum(axis=0)
+        return np.maximum(ss + 2 * gv @ d + np.einsum("i,cij,j->c", d, G, d), 0.0)
+
+    def score_linear(self, effects: Sequence[str], relocate: bool = False) -> ModelScore:
+        """The model scored on the linearisation: a small least-squares problem per fold. With
+        ``relocate`` the searched part (wind window) is the one found on each training set alone
+        (used when the searched effect itself is judged); otherwise the one found on all data."""
+        free = self._free(effects)
+        K = self.K
+        base = (self.G, self.gv, self.ss)
+        searched = relocate and bool(self.widx) and any(i in free for i in self.widx)
+        p_folds = np.zeros((K, self.P))
+        fold_sse = np.zeros(K)
+        ho = np.zeros(len(self.g.channels))
+        for k in range(K):
+            st = self.variants[k] if searched else base
+            train = np.ones(K, dtype=bool)
+            train[k] = False
+            d = self._delta(free, train, st)
+            p_folds[k] = self.p_lin + d
+            sk = self._sse(d, np.array([k]), st)
+            fold_sse[k] = sk.sum()
+            ho += sk * self.sigma ** 2
+        d = self._delta(free, np.ones(K, dtype=bool), base)
+        full = float(self._sse(d, np.arange(K), base).sum())
+        p = self.p_lin + d
+        has_search = bool(self.widx) and any(i in free for i in self.widx)
+        return ModelScore(tuple(effects), free, p, p_folds, self._cov(free, p, p_folds, full), fold_sse, ho,
+                          full, self.n_rows, state=dict(self.state_full) if has_search else {})
+
+    def _free(self, effects: Sequence[str]) -> list[int]:
+        names = [n for c in self.g.candidates if c.effect in effects for n in c.params]
+        return sorted(set(self.g.index(names)))
+
+    def _cov(self, free: list[int], p: np.ndarray, p_folds: np.ndarray, full_sse: float) -> np.ndarray:
+        """Covariance of the free parameters: the cluster-robust sandwich H^-1 S H^-1 over the
+        time blocks (scores summed per block, adjacent blocks' cross terms at half weight: a
+        Newey-West estimate that holds when residuals are correlated in time, as turbulence makes
+        them), its variances floored by the jackknife over the K delete-one-fold fits."""
+        del full_sse
+        P = self.P
+        cov = np.zeros((P, P))
+        if not free:
+            return cov
+        K = self.K
+        d = p - self.p_lin
+        H = self.Gb.sum(axis=0)[np.ix_(free, free)]
+        sb = self.gvb[:, free] + self.Gb[:, free, :] @ d  # (B, k) block scores at p
+        S = sb.T @ sb
+        if len(sb) > 1:
+            cross = sb[1:].T @ sb[:-1]
+            S = S + 0.5 * (cross + cross.T)
+        B = max(len(sb), 1)
+        Hi = np.linalg.pinv(H)
+        cr = Hi @ S @ Hi * B / max(B - len(free), 1)
+        dev = p_folds[:, free] - p_folds[:, free].mean(axis=0)
+        jk = (K - 1) / K * dev.T @ dev
+        dc, dj = np.diag(cr), np.diag(jk)
+        var = np.maximum(dc, dj)
+        scale = np.sqrt(var / np.where(dc > 0, dc, 1.0))
+        sub = cr * np.outer(scale, scale)
+        sub[np.diag_indices(len(free))] = var
+        cov[np.ix_(free, free)] = sub
+        return cov
+
+    def compare(self, with_: ModelScore, without: ModelScore, effect: str | Sequence[str]) -> Comparison:
+        """The evidence for ``effect`` (or several effects together): ``with_`` is ``without``
+        plus the effect(s)."""
+        effects = [effect] if isinstance(effect, str) else list(effect)
+        cands = [c for c in self.g.candidates if c.effect in effects]
+        idx = self.g.index([n for c in cands for n in c.params])
+        dp = with_.p[idx] - self.g.nominal[idx]
+        cov = with_.cov[np.ix_(idx, idx)]
+        try:
+            w = float(dp @ np.linalg.solve(cov, dp)) if np.all(np.isfinite(cov)) and np.linalg.det(cov) > 0 \
+                else math.inf
+        except np.linalg.LinAlgError:
+            w = math.inf
+        # Wald chi-square with len(idx) degrees of freedom -> the normal z of the same tail probability
+        pval = float(stats.chi2.sf(w, len(idx))) if math.isfinite(w) else 0.0
+        z = float(stats.norm.isf(max(pval, 1e-300) / 2)) if pval < 1 else 0.0
+        diff = without.fold_sse - with_.fold_sse
+        sd = float(np.std(diff, ddof=1)) if len(diff) > 1 else 0.0
+        mean = float(np.mean(diff))
+        cv_t = mean / (sd / math.sqrt(len(diff))) if sd > 0 else (math.inf if mean > 0 else 0.0)
+        n_per_c = self.cnt.sum(axis=0)
+        before = np.sqrt(without.heldout_ss / np.maximum(n_per_c, 1))
+        after = np.sqrt(with_.heldout_ss / np.maximum(n_per_c, 1))
+        rel = np.where(before > 0, (before - after) / np.where(before > 0, before, 1.0), 0.0)
+        primary = int(np.argmax(rel))
+        comp = Comparison("+".join(effects), with_, without, z, cv_t, with_.bic() - without.bic(), before, after,
+                          primary)
+        reasons = []
+        if not cv_t >= self.s.cv_t_min:
+            reasons.append(f"held-out improvement not consistent over folds (t = {cv_t:.1f} < {self.s.cv_t_min:g})")
+        if not z >= self.s.z_min:
+            reasons.append(f"parameters within {self.s.z_min:g} sigma of the nominal model (z = {z:.1f})")
+        if not comp.dbic < 0:
+            reasons.append(f"the information criterion does not prefer it (dBIC = {comp.dbic:+.1f})")
+        for cand in cands:
+            if cand.physical is not None:
+                why = cand.physical({n: float(with_.p[self.g.params.index(n)]) for n in cand.params})
+                if why:
+                    reasons.append(why)
+        if not comp.improvement_pct >= self.s.min_improvement_pct:
+            reasons.append(f"held-out residual lower by only {comp.improvement_pct:.2f} % "
+                           f"(< {self.s.min_improvement_pct:g} %)")
+        comp.reasons = reasons
+        comp.significant = not reasons
+        return comp
+
+    # -- selection -------------------------------------------------------------------------------
+
+    def select_linear(self, banned: Sequence[str] = ()) -> list[str]:
+        """Forward selection with a backward check, on the linearisation (see module docstring).
+        Each step tries every single effect and every pair (two effects can be needed together:
+        a flow scale and a rangefinder offset that cancel at one height); a pair is taken only
+        when it beats the best single effect on held-out data and by the information criterion."""
+        names = [c.effect for c in self.g.candidates if c.effect not in banned]
+        chosen: list[str] = []
+        while True:
+            base = self.score_linear(chosen)
+            rest = [e for e in names if e not in chosen]
+            best: Comparison | None = None
+            for e in rest:
+                comp = self.compare(self.score_linear([*chosen, e], self._judged(e)), base, e)
+                if comp.significant and (best is None or comp.with_.cv_sse < best.with_.cv_sse):
+                    best = comp
+            best_pair: Comparison | None = None
+            for i, e1 in enumerate(rest):
+                for e2 in rest[i + 1:]:
+                    with_ = self.score_linear([*chosen, e1, e2], self._judged(e1, e2))
+                    comp = self.compare(with_, base, [e1, e2])
+                    if not comp.significant:
+                        continue
+                    if best is not None:  # the pair must earn its extra parameters over the best single
+                        vs = self.compare(with_, best.with_, [x for x in (e1, e2) if x not in best.with_.effects])
+                        if not (vs.cv_t >= self.s.cv_t_min and vs.dbic < 0):
+                            continue
+                    if best_pair is None or comp.with_.cv_sse < best_pair.with_.cv_sse:
+                        best_pair = comp
+            step = best_pair or best
+            if step is None:
+                break
+            chosen.extend(e for e in step.effect.split("+") if e not in chosen)
+            while len(chosen) > 1:  # backward check: every chosen effect must still earn its place
+                weak = [e for e in chosen
+                        if not self.compare(self.score_linear(chosen, self._judged(e)),
+                                            self.score_linear([x for x in chosen if x != e]), e).significant]
+                if not weak:
+                    break
+                chosen.remove(weak[0])
+        return chosen
+
+    def _judged(self, *effects: str) -> bool:
+        """Whether a comparison judges the searched effect (its part is then searched per fold)."""
+        return self.g.searched_effect is not None and self.g.searched_effect in effects
+
+    def select(self) -> tuple[list[str], ModelScore, dict[str, Comparison]]:
+        """Linearised selection confirmed by exact refits: an effect whose exact drop-one
+        comparison fails is banned and the selection rerun. Returns the chosen effects, the exact
+        score of the chosen model, and the evidence for every candidate (exact for the chosen ones
+        and for those the exact refit turned down, linearised add-one for the others)."""
+        banned: dict[str, Comparison] = {}
+        while True:
+            chosen = self.select_linear(list(banned))
+            final = self.score_exact(chosen)
+            # linearise again where the chosen model is (the largest model may sit far away along
+            # directions the data hardly constrain), and choose again from there
+            self._relinearise(final.p)
+            again = self.select_linear(list(banned))
+            if set(again) != set(chosen):
+                chosen = again
+                final = self.score_exact(chosen)
+            evidence: dict[str, Comparison] = {}
+            failing = []
+            for e in chosen:
+                with_ = self.score_exact(chosen, final.p, relocate=True) if self._judged(e) else final
+                comp = self.compare(with_, self.score_exact([x for x in chosen if x != e], final.p), e)
+                evidence[e] = comp
+                if not comp.significant:
+                    failing.append(comp)
+            if not failing:
+                break
+            worst = min(failing, key=lambda c: min(c.z, c.cv_t))
+            worst.reasons.append("not confirmed by the exact refit")
+            banned[worst.effect] = worst
+        base = self.score_linear(chosen)
+        for c in self.g.candidates:
+            if c.effect in banned:
+                evidence[c.effect] = banned[c.effect]
+            elif c.effect not in chosen:
+                evidence[c.effect] = self.compare(self.score_linear([*chosen, c.effect], self._judged(c.effect)),
+                                                  base, c.effect)
+        return chosen, final, evidence
+
+    # -- exact refits ----------------------------------------------------------------------------
+
+    def score_exact(self, effects: Sequence[str], start: np.ndarray | None = None,
+                    relocate: bool = False) -> ModelScore:
+        """The model refitted on the exact residual, on all data and on each fold's training set
+        (chord iterations), with exact held-out residuals. With ``relocate`` a searched part is
+        searched again on each fold's training rows."""
+        free = self._free(effects)
+        p0 = self.p_lin.copy() if start is None else start.copy()
+        fixed = [i for i in range(self.P) if i not in free]
+        p0[fixed] = self.g.nominal[fixed]
+        it = self.s.chord_iterations
+        searched = bool(self.widx) and any(i in free for i in self.widx)
+        if searched:
+            self._search(p0, None)
+        p = self._gauss_newton(p0, free, None, iterations=it + 1)
+        if searched:
+            self._search(p, None)
+            p = self._gauss_newton(p, free, None, iterations=it)
+        state_full = self.g.state() if (searched and self.g.state) else {}
+        r_full = self.weighted(p)
+        full_sse = float(sum(float(r @ r) for r in r_full))
+        K = self.K
+        p_folds = np.zeros((K, self.P))
+        fold_sse = np.zeros(K)
+        ho = np.zeros(len(self.g.channels))
+        fold_states = []
+        for k in range(K):
+            train = [f != k for f in self.folds]
+            if searched and relocate:
+                self._search(p, train)
+                if self.g.state:
+                    fold_states.append(self.g.state())
+            pk = self._gauss_newton(p, free, train, iterations=max(1, it - 1)) if free else p
+            p_folds[k] = pk
+            for c, r in enumerate(self.weighted(pk)):
+                rk = r[self.folds[c] == k]
+                sk = float(rk @ rk)
+                fold_sse[k] += sk
+                ho[c] += sk * self.sigma[c] ** 2
+        if searched:
+            self._search(p, None)
+        elif self.widx:
+            self._search(self.p_lin, None)
+        return ModelScore(tuple(effects), free, p, p_folds, self._cov(free, p, p_folds, full_sse), fold_sse, ho,
+                          full_sse, self.n_rows, state_full, fold_states)
+
+
+def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least-squares solve of A x = b robust to (near-)singular A."""
+    try:
+        if np.linalg.cond(A) < 1e12:
+            return np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        pass
+    return np.linalg.lstsq(A, b, rcond=None)[0]

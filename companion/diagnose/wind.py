@@ -1,0 +1,131 @@
+"""Locating an external force over a time window: a two-change-point search on the force residual.
+
+With drag and the sensor geometry accounted for, the force channel (``flowmodel``) is, window by
+window, the mean force the model leaves unexplained: turbulence around zero, plus F over the
+windows a wind acts in. The best single window [start, end) is the one whose mean shift explains
+most of the residual (least-squares piecewise-constant fit with two change points, both axes
+together): an exhaustive search over window boundaries with cumulative sums, then a refinement of
+each end at frame resolution with the exact averaging kernel of the channel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.diagnose.flowmodel import ramp_integral
+
+#: a window shorter than this is turbulence, not wind (s)
+MIN_WIND_S = 4.0
+#: the coarse search works on at most this many boundaries (longer recordings are pooled)
+MAX_COARSE = 800
+
+
+@dataclass(frozen=True)
+class WindWindow:
+    start_s: float
+    end_s: float
+    fx_n: float
+    fy_n: float
+    gain: float  # residual sum of squares explained (N^2)
+    #: 1-sigma of the ends from the profile of the fit over each end (the other held), s
+    start_sd: float = math.nan
+    end_sd: float = math.nan
+
+
+def kernel_regressor(t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: int, start_s: float,
+                     end_s: float) -> np.ndarray:
+    """The fraction of each force window [k0, k1] during which a unit force acts, as the force
+    channel averages it (boundary means over +-h frames); shape (n_windows,)."""
+    def bavg(k: np.ndarray) -> np.ndarray:
+        ta, tb = t_s[k - h], t_s[k + h]
+        return (ramp_integral(tb, start_s, end_s) - ramp_integral(ta, start_s, end_s)) / (tb - ta)
+
+    return (bavg(k1) - bavg(k0)) / (t_s[k1] - t_s[k0])
+
+
+def locate(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: int,
+           mask: np.ndarray | None = None, min_s: float = MIN_WIND_S) -> WindWindow | None:
+    """Best force window for residual ``e`` (2, n_windows) in N; ``mask`` (n_windows,) selects the
+    windows to fit on. Windows must be in time order. None when nothing can be fitted."""
+    nw = e.shape[1]
+    if nw < 4:
+        return None
+    w = np.ones(nw) if mask is None else mask.astype(float)
+    e = np.where(np.isfinite(e), e, 0.0) * w
+    tm0, tm1 = t_s[k0], t_s[k1]
+    # coarse: pool neighbouring windows when there are many
+    pool = max(1, math.ceil(nw / MAX_COARSE))
+    m = nw // pool
+    ep = e[:, : m * pool].reshape(2, m, pool).sum(axis=2)
+    wp = w[: m * pool].reshape(m, pool).sum(axis=1)
+    b0 = tm0[: m * pool: pool]
+    b1 = tm1[pool - 1: m * pool: pool]
+    ce = np.concatenate([np.zeros((2, 1)), np.cumsum(ep, axis=1)], axis=1)
+    cw = np.concatenate([[0.0], np.cumsum(wp)])
+    # all pairs j1 < j2 at once: the window covers pooled windows j1 .. j2-1
+    j1 = np.arange(m)[:, None]
+    j2 = np.arange(1, m + 1)[None, :]
+    dur = b1[np.minimum(j2, m) - 1] - b0[j1]
+    nwt = cw[j2] - cw[j1]
+    num = ((ce[:, None, 1:] - ce[:, :-1, None]) ** 2).sum(axis=0)  # (m, m): [j1, j2-1]
+    ok = (j2 > j1) & (dur >= min_s) & (nwt > 0)
+    gain = np.where(ok, num / np.where(nwt > 0, nwt, 1.0), -1.0)
+    flat = int(np.argmax(gain))
+    bj1, bj2 = divmod(flat, m)
+    best = (float(gain[bj1, bj2]), bj1, bj2 + 1)
+    start, end = float(b0[best[1]]), float(b1[best[2] - 1])
+
+    lo_sup = t_s[k0 - h]  # each window's kernel support
+    hi_sup = t_s[k1 + h]
+
+    def fit(s: np.ndarray, en: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Explained sum of squares and forces (G, 2) for candidate windows (G,) that differ in
+        one end only: the regressor is computed for the windows whose kernel meets the range of
+        that end, the rest (0 or 1 for every candidate) summed once."""
+        moving = s if np.ptp(s) > 0 else en
+        vary = (hi_sup >= moving.min()) & (lo_sup <= moving.max())
+        x_ref = kernel_regressor(t_s, k0[~vary], k1[~vary], h, float(s[0]), float(en[0])) * w[~vary]
+        ex0 = e[:, ~vary] @ x_ref
+        xx0 = float(x_ref @ x_ref)
+        x = kernel_regressor(t_s, k0[vary], k1[vary], h, s[:, None], en[:, None]) * w[vary]
+        xx = xx0 + np.einsum("gj,gj->g", x, x)
+        ex = ex0[None, :] + x @ e[:, vary].T
+        f = ex / np.where(xx > 0, xx, 1.0)[:, None]
+        return np.where(xx > 0, (ex ** 2).sum(axis=1) / np.where(xx > 0, xx, 1.0), -1.0), f
+
+    # refine each end at twice the frame resolution, twice around
+    step = max(2 * float(np.median(np.diff(t_s))), 1e-3)
+    span = 1.5 * float(np.median(tm1 - tm0)) * pool
+    for _ in range(2):
+        grid = start + np.arange(-span, span + step / 2, step)
+        grid = grid[grid <= end - min_s]
+        if len(grid):
+            start = float(grid[int(np.argmax(fit(grid, np.full(len(grid), end))[0]))])
+        grid = end + np.arange(-span, span + step / 2, step)
+        grid = grid[grid >= start + min_s]
+        if len(grid):
+            end = float(grid[int(np.argmax(fit(np.full(len(grid), start), grid)[0]))])
+    gains, f = fit(np.array([start]), np.array([end]))
+    # profile of each end: where the explained sum of squares drops by one noise variance (the
+    # residual's, inflated by its lag-one correlation, as turbulence makes neighbouring windows alike)
+    x = kernel_regressor(t_s, k0, k1, h, start, end) * w
+    r = (e - f[0][:, None] * x)[:, w > 0]
+    var = float(np.mean(r ** 2))
+    rho = float(np.mean([np.corrcoef(ri[1:], ri[:-1])[0, 1] for ri in r])) if r.shape[1] > 3 else 0.0
+    var *= 1.0 + 2.0 * max(rho, 0.0) / max(1.0 - max(rho, 0.0), 0.1)
+    fine = max(float(np.median(np.diff(t_s))), 1e-3)
+
+    def sd(grid: np.ndarray, gains_: np.ndarray) -> float:
+        ok = grid[gains_ >= gains_.max() - var]
+        return max(0.5 * float(ok.max() - ok.min()), fine) if len(ok) else math.nan
+
+    gs = start + np.arange(-span, span + step / 2, step / 2)
+    gs = gs[gs <= end - min_s]
+    ge = end + np.arange(-span, span + step / 2, step / 2)
+    ge = ge[ge >= start + min_s]
+    start_sd = sd(gs, fit(gs, np.full(len(gs), end))[0]) if len(gs) else math.nan
+    end_sd = sd(ge, fit(np.full(len(ge), start), ge)[0]) if len(ge) else math.nan
+    return WindWindow(start, end, float(f[0, 0]), float(f[0, 1]), float(gains[0]), start_sd, end_sd)

@@ -1,0 +1,464 @@
+"""``python -m companion diagnose``: models against closed forms, the CLI contract, errors, dispatch,
+and the ArduPilot SITL recording.
+
+Default run: about 40-60 s on a loaded 2-core machine (a 40 s closed-loop flight is flown once for
+the CLI tests; the ArduPilot recording is diagnosed once). The matrix is in test_diagnose_matrix.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+from scipy.interpolate import CubicSpline
+from scipy.optimize import least_squares
+
+from companion.config import GyroBias, load_config, with_effects
+from companion.diagnose.attitude import AttitudeProblem, discretise, expm_discretise
+from companion.diagnose.channels import FlightData
+from companion.diagnose.flowmodel import IDX, NOMINAL, FlowProblem, ramp_integral
+from companion.diagnose.groups import GyroProblem
+from companion.diagnose.select import Candidate, Group, Selector, Settings
+from companion.diagnose.sparse import Term, sparse_fit, stlsq
+from companion.diagnose.wind import kernel_regressor, locate
+from simvehicle.flights import TOLERANCES, flight_plan, param_error_ratios, with_sensor_noise
+from simvehicle.scenarios import fly
+
+REPO = Path(__file__).resolve().parent.parent
+FLIGHT_A = REPO.parent / "shared" / "data" / "sitl" / "ardupilot" / "flight_a.tlog"
+CLI_TIMEOUT_S = 180.0
+
+#: CONVENTIONS.md effect table (parameter keys), plus the two effects this tool adds
+CONVENTION_EFFECTS = {
+    "linear_drag": {"b"}, "gyro_bias": {"bias_x", "bias_y"}, "flow_scale": {"scale_x", "scale_y"},
+    "flow_delay": {"delay"}, "flow_yaw_misalignment": {"yaw"}, "attitude_dynamics": {"omega_p", "zeta"},
+    "range_offset": {"offset"}, "wind_force": {"fx", "fy", "start_s", "end_s"},
+}
+ADDED_EFFECTS = {"attitude_delay": {"delay"}, "flow_rotation_gain": {"gain"}}
+
+
+def run_cli(*args: str, timeout_s: float = CLI_TIMEOUT_S) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "companion", "diagnose", *args], cwd=REPO, capture_output=True,
+                          text=True, timeout=timeout_s, check=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# models against closed forms
+
+
+@pytest.mark.parametrize("omega_p, zeta", [(5.4, 0.71), (3.5, 0.5), (7.0, 0.9), (5.0, 1.0), (2.0, 3.0)])
+def test_attitude_discretisation_is_the_matrix_exponential(omega_p, zeta):
+    Ad, Bd, b, a = discretise(omega_p, zeta, 0.02)
+    Ae, Be = expm_discretise(omega_p, zeta, 0.02)
+    assert_allclose(Ad, Ae, atol=1e-12)
+    assert_allclose(Bd, Be, atol=1e-12)
+    # unit DC gain: a constant command is held exactly
+    assert np.sum(b) / np.sum(a) == pytest.approx(1.0, abs=1e-12)
+
+
+def _flight_data(t: np.ndarray, **cols: np.ndarray) -> FlightData:
+    n = len(t)
+    z = np.zeros(n)
+    base = dict(t_s=t, dt_s=np.r_[0.02, np.diff(t)], seg=np.zeros(n, dtype=int), dphi_x_rad=z, dphi_y_rad=z,
+                gyro_x_rad_s=z, gyro_y_rad_s=z, range_m=np.ones(n), roll_rad=z, pitch_rad=z, yaw_rad=z,
+                roll_cmd_rad=z, pitch_cmd_rad=z, vx_set_m_s=z * np.nan, vy_set_m_s=z * np.nan,
+                truth_vx_m_s=z * np.nan, truth_vy_m_s=z * np.nan)
+    base.update(cols)
+    return FlightData(path="synthetic", profile="paper", profile_reason="test", frame_s=0.02,
+                      command_source="test", **base)
+
+
+def test_attitude_output_error_is_zero_at_the_true_loop():
+    """A recording made by the exact ZOH response to a command is reproduced to round-off, and a
+    different loop leaves a residual."""
+    rng = np.random.default_rng(3)
+    n = 1500
+    t = np.arange(n) * 0.02
+    u = np.repeat(rng.uniform(-0.2, 0.2, n // 25), 25)
+    u[:50] = 0.0  # at rest at the start: the recorded initial state is exact
+    Ad, Bd, _b, _a = discretise(4.5, 0.6, 0.02)
+    x = np.zeros(2)
+    y = np.zeros(n)
+    for k in range(n):
+        y[k] = x[0]
+        x = Ad @ x + Bd * u[k]
+    data = _flight_data(t, roll_rad=y, pitch_rad=y, roll_cmd_rad=u, pitch_cmd_rad=u)
+    ap = AttitudeProblem(data)
+    assert np.abs(ap.residual(4.5, 0.6)).max() < 1e-12
+    assert np.sqrt(np.mean(ap.residual(5.4, 0.71) ** 2)) > 1e-3
+
+
+def test_gyro_channel_reads_a_bias_exactly():
+    n = 2000
+    t = np.arange(n) * 0.02
+    roll = 0.1 * np.sin(2 * np.pi * 0.7 * t)
+    pitch = 0.05 * np.sin(2 * np.pi * 1.3 * t + 1.0)
+    gx = 0.1 * 2 * np.pi * 0.7 * np.cos(2 * np.pi * 0.7 * t) + 0.007
+    gy = 0.05 * 2 * np.pi * 1.3 * np.cos(2 * np.pi * 1.3 * t + 1.0) - 0.004
+    gp = GyroProblem(_flight_data(t, roll_rad=roll, pitch_rad=pitch, gyro_x_rad_s=gx, gyro_y_rad_s=gy))
+    # trapezoid over a frame T: error (T^2/12) rate'', at most (T^2/12) A w^3 for A sin(w t)
+    bound = 0.02 ** 2 / 12 * np.array([0.1 * (2 * np.pi * 0.7) ** 3, 0.05 * (2 * np.pi * 1.3) ** 3])
+    err = np.abs(gp.r - np.array([[0.007], [-0.004]])).max(axis=1)
+    assert np.all(err <= 1.01 * bound) and np.all(err >= 0.9 * bound)
+    assert_allclose(gp.r.mean(axis=1), [0.007, -0.004], atol=2e-6)
+
+
+def test_ramp_integral_closed_form():
+    t = np.array([0.0, 1.0, 2.0, 3.0, 5.0])
+    # force on over [1, 3): the integral of the time it has acted
+    assert_allclose(ramp_integral(t, 1.0, 3.0), [0.0, 0.0, 0.5, 2.0, 6.0])
+    assert_allclose(ramp_integral(t, math.nan, 3.0), np.zeros(5))
+
+
+G = 9.81
+M = 2.3
+
+
+def synthetic_flow_flight(*, scale=(1.0, 1.0), yaw=0.0, delay=0.0, offset=0.0, b=0.0, wind=(0.0, 0.0, 8.0, 20.0),
+                          gain=1.0, duration_s=30.0) -> FlightData:
+    """Exact continuous-time flight (no quantization, no noise): attitude as sums of sines, the
+    plant of eq. 28 with drag b and a wind (fx, fy, start, end), the scene angle of eq. 5-8, and a
+    flow sensor with the given scale, turn, delay, rotation gain, and a rangefinder offset."""
+    fx, fy, ws, we = wind
+
+    w1, w2, w3, w4, w5 = 2 * np.pi * 0.6, 2 * np.pi * 1.7, 2 * np.pi * 0.45, 2 * np.pi * 1.3, 2 * np.pi * 0.04
+
+    def pitch(tt):
+        return 0.08 * np.sin(w1 * tt) + 0.05 * np.sin(w2 * tt + 1.0)
+
+    def roll(tt):
+        return 0.07 * np.sin(w3 * tt + 0.5) + 0.04 * np.sin(w4 * tt)
+
+    def dpitch(tt):
+        return 0.08 * w1 * np.cos(w1 * tt) + 0.05 * w2 * np.cos(w2 * tt + 1.0)
+
+    def droll(tt):
+        return 0.07 * w3 * np.cos(w3 * tt + 0.5) + 0.04 * w4 * np.cos(w4 * tt)
+
+    def height(tt):
+        return 1.3 + 0.5 * np.sin(w5 * tt)
+
+    # classical RK4 at 5 ms, the time-only terms evaluated on the whole grid at once (the wind
+    # switches on step boundaries)
+    h = 0.005
+    n_steps = int(round((duration_s + 1.1) / h))
+    tg = np.arange(n_steps + 1) * h
+    half = np.arange(2 * n_steps + 1) * (h / 2)
+    on = np.where((ws <= half) & (half < we), 1.0, 0.0)
+    tilt_x = -G * np.tan(pitch(half)) + on * fx / M
+    tilt_y = G * np.tan(roll(half)) + on * fy / M
+    rot_x, rot_y, a_h = -gain * dpitch(half), gain * droll(half), height(half)
+    state = np.zeros((n_steps + 1, 4))
+    sk = [0.3, -0.2, 0.0, 0.0]
+    state[0] = sk
+    kb = b / M
+    for k in range(n_steps):
+        vals = []
+        for j, frac in ((2 * k, 0.0), (2 * k + 1, 0.5), (2 * k + 1, 0.5), (2 * k + 2, 1.0)):
+            if not vals:
+                vx, vy = sk[0], sk[1]
+            else:
+                d = vals[-1]
+                vx, vy = sk[0] + frac * h * d[0], sk[1] + frac * h * d[1]
+            vals.append((tilt_x[j] - kb * vx, tilt_y[j] - kb * vy, rot_x[j] - vx / a_h[j], rot_y[j] - vy / a_h[j]))
+        sk = [sk[i] + h / 6 * (vals[0][i] + 2 * vals[1][i] + 2 * vals[2][i] + vals[3][i]) for i in range(4)]
+        state[k + 1] = sk
+    t0 = 1.0  # sampling starts after 1 s so that t - delay is inside the solution
+    t = t0 + np.arange(int(duration_s / 0.02)) * 0.02
+    ts = t - delay
+    sp = CubicSpline(tg, state[:, 2:4], axis=0)
+    phi = sp(ts).T
+    c, s = math.cos(yaw), math.sin(yaw)
+    sx = (c * phi[0] + s * phi[1]) / scale[0]
+    sy = (-s * phi[0] + c * phi[1]) / scale[1]
+    dphi_x = np.r_[0.0, np.diff(sx)]
+    dphi_y = np.r_[0.0, np.diff(sy)]
+    return _flight_data(t, dphi_x_rad=dphi_x, dphi_y_rad=dphi_y, pitch_rad=pitch(t), roll_rad=roll(t),
+                        range_m=height(t) + offset, gyro_x_rad_s=droll(t), gyro_y_rad_s=dpitch(t))
+
+
+TRUE = dict(scale=(1.12, 0.93), yaw=math.radians(5.0), delay=0.03, offset=0.08, b=0.3, wind=(1.5, -1.0, 8.0, 20.0))
+
+
+def _p(scale=(1.0, 1.0), yaw=0.0, delay=0.0, offset=0.0, b=0.0, wind=(0.0, 0.0, 0.0, 0.0), gain=1.0) -> np.ndarray:
+    p = NOMINAL.copy()
+    p[IDX["scale_x"]], p[IDX["scale_y"]] = scale
+    p[IDX["yaw"]], p[IDX["delay"]], p[IDX["offset"]], p[IDX["b"]] = yaw, delay, offset, b
+    p[IDX["fx"]], p[IDX["fy"]] = wind[0], wind[1]
+    p[IDX["gain"]] = gain
+    return p
+
+
+@pytest.fixture(scope="module")
+def exact_flight() -> FlightData:
+    return synthetic_flow_flight(**TRUE)
+
+
+def test_flow_and_force_channels_vanish_at_the_true_effects(exact_flight):
+    fp = FlowProblem(exact_flight, mass_kg=M, gravity_m_s2=G)
+    p_true = _p(**TRUE)
+    s, e = TRUE["wind"][2:]
+    flow_true = np.sqrt(np.mean(fp.flow_residual(p_true) ** 2))
+    flow_nom = np.sqrt(np.mean(fp.flow_residual(NOMINAL) ** 2))
+    force_true = np.sqrt(np.mean(fp.force_residual(p_true, s, e) ** 2))
+    force_nom = np.sqrt(np.mean(fp.force_residual(NOMINAL) ** 2))
+    # the discrete model's own error (frame-rate integration; drag and wind change the velocity
+    # within a window by more than the cubic the channel removes) is a tenth of a PMW3901 count's
+    # rounding (Q / sqrt(12) = 4.5e-4 rad) and a few mN
+    assert flow_true < 5e-5 and flow_true < 0.01 * flow_nom
+    assert force_true < 0.002 and force_true < 0.01 * force_nom
+
+
+def test_flow_model_recovers_every_parameter_from_exact_data(exact_flight):
+    """Least squares on both channels finds the planted sensor geometry, drag and wind."""
+    fp = FlowProblem(exact_flight, mass_kg=M, gravity_m_s2=G)
+    s, e = TRUE["wind"][2:]
+    free = [IDX[k] for k in ("scale_x", "scale_y", "yaw", "delay", "offset", "b", "fx", "fy")]
+
+    def res(q):
+        p = NOMINAL.copy()
+        p[free] = q
+        return np.concatenate([fp.flow_residual(p).ravel() / 4.5e-4, fp.force_residual(p, s, e).ravel() / 0.05])
+
+    fit = least_squares(res, NOMINAL[free], x_scale=[0.1, 0.1, 0.1, 0.01, 0.05, 0.1, 0.5, 0.5])
+    got = dict(zip(("scale_x", "scale_y", "yaw", "delay", "offset", "b", "fx", "fy"), fit.x, strict=True))
+    # tolerances: a tenth of the matrix's (issue #5) tolerances
+    assert got["scale_x"] == pytest.approx(1.12, rel=0.003)
+    assert got["scale_y"] == pytest.approx(0.93, rel=0.003)
+    assert got["yaw"] == pytest.approx(math.radians(5.0), abs=math.radians(0.15))
+    assert got["delay"] == pytest.approx(0.03, abs=0.0008)
+    assert got["offset"] == pytest.approx(0.08, abs=0.002)
+    assert got["b"] == pytest.approx(0.3, rel=0.02)
+    assert (got["fx"], got["fy"]) == pytest.approx((1.5, -1.0), abs=0.03)
+
+
+def test_rotation_gain_is_told_from_a_scale():
+    """A rotation-only gain leaves the translation unscaled: the flow channel sees the gain."""
+    fd = synthetic_flow_flight(gain=1.1, duration_s=20.0)
+    fp = FlowProblem(fd, mass_kg=M, gravity_m_s2=G)
+    assert np.sqrt(np.mean(fp.flow_residual(_p(gain=1.1)) ** 2)) < 2e-5
+    assert np.sqrt(np.mean(fp.flow_residual(_p(scale=(1 / 1.1, 1 / 1.1))) ** 2)) > 1e-4
+
+
+def test_wind_window_is_located_on_a_noisy_step():
+    rng = np.random.default_rng(5)
+    t = np.arange(0, 120.0, 0.02)
+    k = np.arange(5, len(t) - 5, 50)
+    k0, k1 = k[:-1], k[1:]
+    x = kernel_regressor(t, k0, k1, 5, 37.3, 81.9)
+    e = np.stack([1.2 * x, -0.7 * x]) + rng.normal(0, 0.1, (2, len(k0)))
+    w = locate(e, t, k0, k1, 5)
+    assert w is not None
+    assert (w.start_s, w.end_s) == pytest.approx((37.3, 81.9), abs=0.5)
+    assert (w.fx_n, w.fy_n) == pytest.approx((1.2, -0.7), abs=0.05)
+
+
+def test_stlsq_recovers_a_sparse_law():
+    rng = np.random.default_rng(7)
+    X = rng.normal(size=(400, 6))
+    y = 0.8 * X[:, 1] - 0.5 * X[:, 4] + rng.normal(0, 0.05, 400)
+    c = stlsq(X, y, 0.1)
+    assert_allclose(c, [0, 0.8, 0, 0, -0.5, 0], atol=0.02)
+    terms = [Term(f"x{i}", f"term {i}", "1", X[:, i]) for i in range(6)]
+    fit = sparse_fit(y, terms, np.arange(400) % 5, 5)
+    assert fit.best is not None and fit.best.name == "x1"
+    assert fit.r2_heldout > 0.95
+
+
+def _line_group(y: np.ndarray, x: np.ndarray, t: np.ndarray) -> Group:
+    return Group(name="line", params=("a",), nominal=np.zeros(1), steps=np.array([1e-3]),
+                 lower=np.array([-10.0]), upper=np.array([10.0]), channels=("y",), units=("1",), floors=(1e-9,),
+                 residuals=lambda p: [y - p[0] * x], row_times=[t], candidates=[Candidate("slope", ("a",))],
+                 linear=("a",))
+
+
+def test_selector_names_an_effect_only_when_it_earns_it():
+    rng = np.random.default_rng(11)
+    t = np.arange(0, 150.0, 0.1)
+    x = np.sin(2 * np.pi * 0.05 * t)
+    noise = rng.normal(0, 0.1, len(t))
+    chosen, final, ev = Selector(_line_group(0.05 * x + noise, x, t), Settings(), 0.0).select()
+    assert chosen == ["slope"] and ev["slope"].significant
+    assert final.p[0] == pytest.approx(0.05, abs=3 * math.sqrt(final.cov[0, 0]))
+    assert ev["slope"].heldout_rms_after[0] < ev["slope"].heldout_rms_before[0]
+    chosen0, _f, ev0 = Selector(_line_group(noise, x, t), Settings(), 0.0).select()
+    assert chosen0 == [] and not ev0["slope"].significant
+
+
+# ---------------------------------------------------------------------------------------------
+# the command line
+
+
+@pytest.fixture(scope="module")
+def short_flight(tmp_path_factory) -> Path:
+    """40 s of varied closed-loop flight with a gyro bias, recorded (paper profile)."""
+    path = tmp_path_factory.mktemp("diag") / "bias.tlog"
+    cfg = with_effects(with_sensor_noise(load_config()), gyro_bias=GyroBias(0.01, -0.008))
+    fly(cfg, flight_plan(7, duration_s=40.0).scenario(), seed=7, tlog=path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def short_report(short_flight, tmp_path_factory) -> tuple[dict, subprocess.CompletedProcess[str], Path]:
+    out = tmp_path_factory.mktemp("diag_out")
+    proc = run_cli(str(short_flight), "--json", str(out / "r.json"), "--report", str(out / "rep"))
+    assert proc.returncode == 0, proc.stderr
+    return json.loads((out / "r.json").read_text()), proc, out
+
+
+def test_json_report_has_the_conventions_shape(short_report, short_flight):
+    rep, _proc, _out = short_report
+    assert rep["recording"] == short_flight.name
+    assert set(rep) >= {"recording", "baseline", "findings", "unexplained"}
+    assert set(rep["baseline"]["channels"]) == {"attitude_roll", "attitude_pitch", "gyro_x", "gyro_y", "flow_x",
+                                                "flow_y", "force_x", "force_y"}
+    assert all(set(v) == {"rms"} and v["rms"] >= 0 for v in rep["baseline"]["channels"].values())
+    names = {f["effect"] for f in rep["findings"]}
+    assert names == set(CONVENTION_EFFECTS) | set(ADDED_EFFECTS)  # every effect tried is reported
+    for f in rep["findings"]:
+        assert set(f) >= {"effect", "significant", "parameters", "uncertainty", "explanation", "where", "fit"}
+        keys = {**CONVENTION_EFFECTS, **ADDED_EFFECTS}[f["effect"]]
+        assert set(f["parameters"]) == keys and set(f["uncertainty"]) == keys
+        assert isinstance(f["significant"], bool) and isinstance(f["explanation"], str) and f["explanation"]
+        assert set(f["fit"]) == {"heldout_rms_before", "heldout_rms_after", "improvement_pct"}
+        for w in f["where"]:
+            assert set(w) == {"channel", "start_s", "end_s"} and 0 <= w["start_s"] <= w["end_s"] <= 41.0
+    for u in rep["unexplained"]:
+        assert set(u) >= {"channel", "start_s", "end_s", "rms"}
+
+
+def test_the_planted_gyro_bias_is_named_and_improves_the_heldout_fit(short_report):
+    rep, proc, out = short_report
+    sig = {f["effect"]: f for f in rep["findings"] if f["significant"]}
+    assert set(sig) == {"gyro_bias"}, sorted(sig)
+    f = sig["gyro_bias"]
+    ratios = param_error_ratios("gyro_bias", {"bias_x": 0.01, "bias_y": -0.008}, f["parameters"])
+    assert max(ratios.values()) <= 1.0, (ratios, TOLERANCES["gyro_bias"])
+    assert f["fit"]["heldout_rms_after"] < f["fit"]["heldout_rms_before"]
+    assert f["where"] and f["where"][0]["channel"] in ("gyro_x", "gyro_y")
+    assert "gyro_bias" in proc.stdout and "bias_x" in proc.stdout  # the human summary names it
+    md = (out / "rep" / "report.md").read_text()
+    assert "gyro_bias" in md and "![residuals](residuals.png)" in md
+    for png in ("residuals.png", "models.png", "velocity.png"):
+        assert (out / "rep" / png).stat().st_size > 10_000
+
+
+def test_missing_recording_is_one_line_error(tmp_path):
+    proc = run_cli(str(tmp_path / "nope.tlog"), timeout_s=60)
+    assert proc.returncode == 4
+    assert proc.stderr.strip().count("\n") == 0 and "not found" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def _write_tlog(path: Path, msgs: list) -> None:
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    with path.open("wb") as fh:
+        for i, m in enumerate(msgs):
+            fh.write(int((1.7e9 + 0.02 * i) * 1e6).to_bytes(8, "big") + m.pack(enc))
+
+
+def test_recording_without_flow_names_optical_flow(tmp_path):
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    msgs = []
+    for k in range(200):
+        msgs.append(enc.attitude_encode(20 * k, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+        msgs.append(enc.raw_imu_encode(20000 * k, 0, 0, -1000, 0, 0, 0, 0, 0, 0))
+    path = tmp_path / "noflow.tlog"
+    _write_tlog(path, msgs)
+    proc = run_cli(str(path), timeout_s=60)
+    assert proc.returncode == 4, proc.stderr
+    assert "OPTICAL_FLOW" in proc.stderr and proc.stderr.strip().count("\n") == 0
+
+
+def test_bad_config_is_one_line_error(short_flight, tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[airframe]\nmass_kg = 2.3\n")
+    proc = run_cli(str(short_flight), "--config", str(bad), timeout_s=60)
+    assert proc.returncode == 3 and "missing" in proc.stderr and proc.stderr.strip().count("\n") == 0
+
+
+def test_short_recording_gives_a_report_or_one_line_error(tmp_path):
+    """Too short to fit anything: still no traceback (a report naming nothing, or one line)."""
+    for duration, name in ((3.0, "tiny.tlog"), (9.0, "short.tlog")):
+        path = tmp_path / name
+        fly(with_sensor_noise(load_config()), flight_plan(3, duration_s=duration).scenario(), seed=3, tlog=path)
+        proc = run_cli(str(path), "--json", str(tmp_path / f"{name}.json"), timeout_s=120)
+        assert "Traceback" not in proc.stderr
+        if proc.returncode == 0:
+            rep = json.loads((tmp_path / f"{name}.json").read_text())
+            assert not [f for f in rep["findings"] if f["significant"]]
+        else:
+            assert proc.returncode == 4 and proc.stderr.strip().count("\n") == 0, proc.stderr
+
+
+def test_px4_profile_recording_is_read_in_the_papers_convention(tmp_path):
+    """OPTICAL_FLOW_RAD (integrated radians) goes through the same channels: a planted flow delay
+    is found within the issue's tolerance."""
+    from companion.config import FlowDelay
+    from companion.profiles import Profile
+
+    path = tmp_path / "px4.tlog"
+    cfg = with_effects(with_sensor_noise(load_config()), flow_delay=FlowDelay(0.04))
+    fly(cfg, flight_plan(8, duration_s=40.0).scenario(), profile=Profile.PX4, seed=8, tlog=path)
+    proc = run_cli(str(path), "--profile", "px4", "--json", str(tmp_path / "p.json"), timeout_s=120)
+    assert proc.returncode == 0, proc.stderr
+    sig = {f["effect"]: f for f in json.loads((tmp_path / "p.json").read_text())["findings"] if f["significant"]}
+    assert set(sig) == {"flow_delay"}, sorted(sig)
+    assert sig["flow_delay"]["parameters"]["delay"] == pytest.approx(0.04, abs=TOLERANCES["flow_delay"]["delay"][1])
+
+
+def test_recording_without_commands_goes_to_sensor_mode(tmp_path, monkeypatch):
+    sensor = pytest.importorskip("companion.sensor_diagnose")
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    from companion import cli
+
+    enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    msgs = [enc.optical_flow_encode(20000 * k, 0, 1, 0, 0.0, 0.0, 255, -1.0, 0.0, 0.0) for k in range(100)]
+    path = tmp_path / "sensor_only.tlog"
+    _write_tlog(path, msgs)
+    calls: list[argparse.Namespace] = []
+    monkeypatch.setattr(sensor, "run_sensor_cli", lambda a: calls.append(a) or 0)
+    assert cli.main(["diagnose", str(path)]) == 0
+    assert len(calls) == 1 and calls[0].recording == str(path)
+    # --sensor-config always means sensor mode
+    assert cli.main(["diagnose", str(path), "--sensor-config", "x.toml"]) == 0
+    assert len(calls) == 2
+
+
+# ---------------------------------------------------------------------------------------------
+# ArduPilot SITL (issue #9)
+
+
+@pytest.mark.skipif(not FLIGHT_A.exists(), reason="shared ArduPilot SITL recording not present")
+def test_ardupilot_flight_is_diagnosed_and_its_findings_improve_the_heldout_fit(tmp_path):
+    t = time.perf_counter()
+    proc = run_cli(str(FLIGHT_A), "--profile", "ardupilot", "--config", str(REPO / "configs" / "ardupilot_sitl.toml"),
+                   "--json", str(tmp_path / "a.json"))
+    wall = time.perf_counter() - t
+    assert proc.returncode == 0, proc.stderr
+    print(f"\ndiagnose flight_a.tlog (120 s under companion control, 90 k records): {wall:.1f} s")
+    rep = json.loads((tmp_path / "a.json").read_text())
+    sig = {f["effect"]: f for f in rep["findings"] if f["significant"]}
+    assert sig, "ArduCopter is not the paper's model: something must be found"
+    for f in sig.values():
+        assert f["fit"]["heldout_rms_after"] < f["fit"]["heldout_rms_before"], f["effect"]
+        assert f["where"], f["effect"]
+        # only the companion-controlled window (51.17-171.18 s) is diagnosed
+        assert all(50.0 < w["start_s"] <= w["end_s"] < 172.0 for w in f["where"])
+    # the recording's README: no gyro bias, no wind, no flow scale error, sensor at the centre of gravity
+    assert not {"gyro_bias", "wind_force", "flow_scale", "range_offset", "flow_yaw_misalignment"} & set(sig)
+    # ArduCopter's attitude loop is not the paper's Omega_p = 5.4, zeta = 0.71: it answers faster
+    assert "attitude_dynamics" in sig and sig["attitude_dynamics"]["parameters"]["omega_p"] > 5.4
