@@ -8,11 +8,9 @@ Set FLOWHOLD_DEBUG=1 to see the traceback of an unexpected error.
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 from collections.abc import Callable, Sequence
 
-from companion.errors import ExitCode, FlowholdError
+from companion.errors import run_command
 
 PROFILES = ("paper", "ardupilot", "px4")
 
@@ -87,16 +85,4 @@ def _dispatch(command: str) -> Callable[[argparse.Namespace], int]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return int(_dispatch(args.command)(args))
-    except FlowholdError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return int(exc.exit_code)
-    except KeyboardInterrupt:
-        print("stopped", file=sys.stderr)
-        return 130
-    except Exception as exc:  # noqa: BLE001 - the last line of defence: one line, no traceback
-        if os.environ.get("FLOWHOLD_DEBUG"):
-            raise
-        print(f"error: {type(exc).__name__}: {exc} (set FLOWHOLD_DEBUG=1 for details)", file=sys.stderr)
-        return int(ExitCode.FAILURE)
+    return run_command(lambda: _dispatch(args.command)(args))

@@ -319,19 +319,25 @@ def validate(cfg: Config) -> None:
             raise ConfigError(f"{cfg.source}: {message}")
 
 
+def read_toml(path: str | Path, what: str) -> dict[str, Any]:
+    """A TOML file's tables, or a ConfigError with one clear line naming ``what`` it was meant
+    to be ("config file", "sensor config", "sweep file")."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{what} not found: {p}") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{what} path is a directory: {p}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+
+
 def load_config(path: str | Path | None = None) -> Config:
     """Load a parameter set; ``None`` is ``configs/paper.toml`` (Table VI)."""
     p = Path(path) if path is not None else DEFAULT_CONFIG
-    try:
-        with p.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"config file not found: {p}") from None
-    except IsADirectoryError:
-        raise ConfigError(f"config path is a directory: {p}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-    return config_from_dict(data, source=str(p))
+    return config_from_dict(read_toml(p, "config file"), source=str(p))
 
 
 def with_effects(cfg: Config, **effects: Any) -> Config:

@@ -7,6 +7,9 @@ an exit code (see ``ExitCode``). Nothing below ``cli.py`` calls ``exit()``.
 from __future__ import annotations
 
 import enum
+import os
+import sys
+from collections.abc import Callable
 
 
 class ExitCode(enum.IntEnum):
@@ -16,6 +19,25 @@ class ExitCode(enum.IntEnum):
     CONFIG = 3
     BAD_INPUT = 4
     LINK = 5
+
+
+def run_command(command: Callable[[], int]) -> int:
+    """Run a command-line action: a ``FlowholdError`` becomes one line on stderr and its exit
+    code, Ctrl-C exits 130, and any other exception one line too (FLOWHOLD_DEBUG=1 re-raises it
+    to show the traceback). The one place where exceptions become exit codes."""
+    try:
+        return int(command())
+    except FlowholdError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return int(exc.exit_code)
+    except KeyboardInterrupt:
+        print("stopped", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the last line of defence: one line, no traceback
+        if os.environ.get("FLOWHOLD_DEBUG"):
+            raise
+        print(f"error: {type(exc).__name__}: {exc} (set FLOWHOLD_DEBUG=1 for details)", file=sys.stderr)
+        return int(ExitCode.FAILURE)
 
 
 class FlowholdError(Exception):

@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import sys
 from collections.abc import Sequence
 
-from companion.errors import ExitCode, FlowholdError
+from companion.errors import run_command
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -89,26 +87,18 @@ def _summary(fig: dict) -> str:
     return "\n".join(lines)
 
 
+def _dispatch(args: argparse.Namespace) -> int:
+    if args.command == "scenario":
+        return _scenario(args)
+    if args.command == "serve":
+        from simvehicle.server import run_cli
+
+        return int(run_cli(args))
+    from simvehicle.sweep import run_cli as sweep_cli
+
+    return int(sweep_cli(args))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        if args.command == "scenario":
-            return _scenario(args)
-        if args.command == "serve":
-            from simvehicle.server import run_cli
-
-            return int(run_cli(args))
-        from simvehicle.sweep import run_cli as sweep_cli
-
-        return int(sweep_cli(args))
-    except FlowholdError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return int(exc.exit_code)
-    except KeyboardInterrupt:
-        print("stopped", file=sys.stderr)
-        return 130
-    except Exception as exc:  # noqa: BLE001 - one line, no traceback
-        if os.environ.get("FLOWHOLD_DEBUG"):
-            raise
-        print(f"error: {type(exc).__name__}: {exc} (set FLOWHOLD_DEBUG=1 for details)", file=sys.stderr)
-        return int(ExitCode.FAILURE)
+    return run_command(lambda: _dispatch(args))

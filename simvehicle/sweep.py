@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.config import EFFECT_TYPES, Config, config_from_dict
+from companion.config import EFFECT_TYPES, Config, config_from_dict, read_toml
 from companion.errors import ConfigError
 from simvehicle import fastsim
 from simvehicle.scenarios import SCENARIOS, figures
@@ -78,15 +78,7 @@ class SweepSpec:
 def load_sweep(path: str | Path) -> SweepSpec:
     """Read and check a sweep file (every grid point is also bound and checked as a Config)."""
     p = Path(path)
-    try:
-        with p.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"sweep file not found: {p}") from None
-    except IsADirectoryError:
-        raise ConfigError(f"sweep path is a directory: {p}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    data = read_toml(p, "sweep file")
     unknown = sorted(set(data) - _KEYS)
     if unknown:
         raise ConfigError(f"{p}: unknown key(s) {', '.join(unknown)} (allowed: {', '.join(sorted(_KEYS))})")

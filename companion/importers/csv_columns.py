@@ -29,14 +29,13 @@ from __future__ import annotations
 
 import csv
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from companion.config import bind
+from companion.config import bind, read_toml
 from companion.errors import ConfigError, RecordingError
 from companion.recording import MessageTable, Recording
 
@@ -192,16 +191,7 @@ def _validate(m: ColumnMap) -> None:
 def load_column_map(path: str | Path) -> ColumnMap:
     """Read and check a column map (TOML). Raises ConfigError with one clear line."""
     p = Path(path)
-    try:
-        with p.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"sensor config not found: {p}") from None
-    except IsADirectoryError:
-        raise ConfigError(f"sensor config path is a directory: {p}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-    return column_map_from_dict(data, source=str(p))
+    return column_map_from_dict(read_toml(p, "sensor config"), source=str(p))
 
 
 # ---------------------------------------------------------------------------------------------
