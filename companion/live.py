@@ -456,9 +456,7 @@ class LiveCompanion:
                 self.core.plausible.reset()
                 self.out(f"flowhold: the vehicle's clock restarted ({self.last_flow_time_s:.3f} s -> {t:.3f} s)")
         self.core.set_setpoint(*self._effective_setpoint(now))
-        out = self.router.handle(msg, now)
-        if out is None:
-            return
+        out = self.core.on_flow(f)  # the frame parsed above (only the vehicle's flow comes here)
         if out.repeat:  # the same flow sample again (ArduPilot streams faster than the sensor)
             self.counters["flow samples repeated"] += 1
             return
