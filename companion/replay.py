@@ -41,7 +41,6 @@ and the companion's recorded ``rec_roll/pitch_cmd_rad`` and ``rec_vx/vy_m_s``.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -58,7 +57,6 @@ from companion.core import (
     EstimatorOptions,
     GyroSource,
     HoldCause,
-    Plausibility,
     PlausibilityParams,
     StepOutput,
     StepParams,
@@ -67,6 +65,7 @@ from companion.core import (
     estimate_frames,
     gate_frames,
     latest_before,
+    plausibility_columns,
     repeat_mask,
     repeat_window,
     run_control,
@@ -470,15 +469,13 @@ def _cross_frame_checks(rec: Recording, sysid: int, cfg: Config, record: np.ndar
         ar_y = np.where(j >= 0, np.asarray(att["pitchspeed"], float)[np.maximum(j, 0)], np.nan)
     else:
         ar_x = ar_y = np.full(len(record), np.nan)
-    plaus = Plausibility(PlausibilityParams.from_config(cfg))
+    usable = np.flatnonzero(codes == 0)
+    vetoes = plausibility_columns(PlausibilityParams.from_config(cfg),
+                                  *(np.asarray(c, float)[usable] for c in (time_s, scene_x, scene_y, gx, gy, vx, vy,
+                                                                           range_m, ar_x, ar_y)))
     out = codes.copy()
-    cols = [c.tolist() for c in (time_s, scene_x, scene_y, gx, gy, vx, vy, range_m, ar_x, ar_y)]
-    for i in np.flatnonzero(codes == 0).tolist():
-        t, fx, fy, g_x, g_y, v_x, v_y, r, a_x, a_y = (c[i] for c in cols)
-        rates = (a_x, a_y) if math.isfinite(a_x) and math.isfinite(a_y) else None
-        veto = plaus.check(t, (fx, fy), (g_x, g_y), (v_x, v_y), r, rates)
-        if veto is not None:
-            out[i] = CAUSE_CODES.index(veto)
+    for k, cause in vetoes:
+        out[usable[k]] = CAUSE_CODES.index(cause)
     return out
 
 

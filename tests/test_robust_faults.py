@@ -367,3 +367,43 @@ def test_every_test_named_in_docs_robustness_exists():
     assert len(refs) > 30
     for fname, test in refs:
         assert re.search(rf"^def {test}\(", (root / fname).read_text(), re.M), f"{fname}::{test}"
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_plausibility_columns_equal_frame_by_frame_checks(paper_cfg, seed):
+    """Replay's screened column form of the cross-frame checks gives the same vetoes as calling
+    ``Plausibility.check`` on every frame, on sequences built to trip every check (and not)."""
+    from companion.core import Plausibility, PlausibilityParams, plausibility_columns
+
+    rng = np.random.default_rng(seed)
+    params = PlausibilityParams.from_config(paper_cfg)
+    n = int(rng.integers(1, 400))
+    t = np.cumsum(rng.choice([0.02, 0.02, 0.02, 0.04, -0.01 if seed % 7 == 0 else 0.02], n))
+    q = paper_cfg.flow_sensor.q_rad_per_count
+    fx = np.round(rng.normal(0, 2, n)) * q
+    fy = np.round(rng.normal(0, 2, n)) * q
+    gx, gy = rng.normal(0, 0.1 * (seed % 3), n), rng.normal(0, 0.1 * (seed % 3), n)
+    for _ in range(int(rng.integers(0, 4))):  # frozen runs of flow or gyro
+        a = int(rng.integers(0, n))
+        b = min(n, a + int(rng.integers(5, 60)))
+        if rng.random() < 0.5:
+            fx[a:b], fy[a:b] = fx[a], fy[a]
+        else:
+            gx[a:b], gy[a:b] = gx[a], gy[a]
+    vx = np.cumsum(rng.normal(0, 0.02, n))
+    vy = np.cumsum(rng.normal(0, 0.02, n))
+    for i in rng.integers(0, n, int(rng.integers(0, 4))):  # jumps
+        vx[i] += rng.choice([-1, 1]) * rng.uniform(0.5, 3)
+    rng_m = rng.uniform(0.5, 2, n)
+    ax, ay = rng.normal(0, 0.2, n), rng.normal(0, 0.2, n)
+    ax[rng.random(n) < 0.05] = np.nan
+    got = plausibility_columns(params, t, fx, fy, gx, gy, vx, vy, rng_m, ax, ay)
+    ref = Plausibility(params)
+    want = []
+    for i in range(n):
+        rates = (ax[i], ay[i]) if np.isfinite(ax[i]) and np.isfinite(ay[i]) else None
+        v = ref.check(float(t[i]), (float(fx[i]), float(fy[i])), (float(gx[i]), float(gy[i])),
+                      (float(vx[i]), float(vy[i])), float(rng_m[i]), rates)
+        if v is not None:
+            want.append((i, v))
+    assert got == want
