@@ -557,6 +557,10 @@ JUMP_HOLD_FRAMES = 3
 FROZEN_WINDOW_S = 0.5
 #: ... "turns": the rotation rate spans this many counts of flow per frame across the window
 FROZEN_ROTATION_COUNTS = 3.0
+#: floors of the two allowances in rad/s, for sensors whose noise is not their quantization
+#: (ArduPilot's flow rates, a fine Q): the values Table VI's Q gives (0.63 and 0.24 rad/s) rounded down
+JUMP_NOISE_FLOOR_RAD_S = 0.5
+FROZEN_ROTATION_FLOOR_RAD_S = 0.2
 
 
 @dataclass(frozen=True)
@@ -565,9 +569,10 @@ class PlausibilityParams:
 
     ``max_accel_m_s2``: the fastest the vehicle can change its velocity, twice ``g tan(tilt
     limit)`` (the tilt limit's acceleration, and as much again for wind and transients).
-    ``jump_noise_rad_s``: ``JUMP_NOISE_COUNTS`` counts per frame as a scene rate.
-    ``frozen_frames``: ``FROZEN_WINDOW_S`` in frames. ``frozen_rotation_rad_s``:
-    ``FROZEN_ROTATION_COUNTS`` counts per frame as a body rate.
+    ``jump_noise_rad_s``: ``JUMP_NOISE_COUNTS`` counts per frame as a scene rate, at least
+    ``JUMP_NOISE_FLOOR_RAD_S``. ``frozen_frames``: ``FROZEN_WINDOW_S`` in frames.
+    ``frozen_rotation_rad_s``: ``FROZEN_ROTATION_COUNTS`` counts per frame as a body rate, at least
+    ``FROZEN_ROTATION_FLOOR_RAD_S``.
     """
 
     max_accel_m_s2: float
@@ -581,9 +586,9 @@ class PlausibilityParams:
         t = cfg.flow_sensor.frame_period_s
         q = cfg.flow_sensor.q_rad_per_count
         return cls(max_accel_m_s2=2.0 * cfg.airframe.gravity_m_s2 * math.tan(cfg.controller.tilt_limit_rad),
-                   jump_noise_rad_s=JUMP_NOISE_COUNTS * q / t, jump_hold_frames=JUMP_HOLD_FRAMES,
-                   frozen_frames=max(2, round(FROZEN_WINDOW_S / t)),
-                   frozen_rotation_rad_s=FROZEN_ROTATION_COUNTS * q / t)
+                   jump_noise_rad_s=max(JUMP_NOISE_COUNTS * q / t, JUMP_NOISE_FLOOR_RAD_S),
+                   jump_hold_frames=JUMP_HOLD_FRAMES, frozen_frames=max(2, round(FROZEN_WINDOW_S / t)),
+                   frozen_rotation_rad_s=max(FROZEN_ROTATION_COUNTS * q / t, FROZEN_ROTATION_FLOOR_RAD_S))
 
 
 def _span(values: deque[float]) -> float:
