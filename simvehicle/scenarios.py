@@ -29,6 +29,7 @@ from companion.config import Config
 from companion.core import CompanionCore
 from companion.inbound import MessageRouter
 from companion.profiles import Profile
+from companion.tlog_writer import TlogWriter
 from simvehicle import telemetry
 from simvehicle.flow_sensor import flow_frame
 from simvehicle.sim import Simulator, Turbulence
@@ -147,17 +148,17 @@ def fly(cfg: Config, scenario: Scenario, *, profile: Profile = Profile.PAPER, se
                Path(tlog) if tlog else None, {"profile": profile.value, "seed": seed})
 
 
-def _open_tlog(path: str | Path | None) -> Any:
+def _open_tlog(path: str | Path | None) -> TlogWriter | None:
     if path is None:
         return None
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    return open(path, "wb")  # noqa: SIM115 - closed in fly()
+    return TlogWriter(path)
 
 
-def _emit(writer: Any, msg: Any, enc: Any, stamp_s: float) -> bytes:
+def _emit(writer: TlogWriter | None, msg: Any, enc: Any, stamp_s: float) -> bytes:
     buf = msg.pack(enc)
     if writer is not None:
-        writer.write(int(round(stamp_s * 1e6)).to_bytes(8, "big") + buf)
+        writer.write_bytes(buf, stamp_s)
     return buf
 
 
