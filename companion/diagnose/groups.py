@@ -23,7 +23,11 @@ from companion.diagnose.attitude import AttitudeProblem
 from companion.diagnose.channels import FlightData
 from companion.diagnose.flowmodel import IDX, NOMINAL, PARAMS, FlowProblem
 from companion.diagnose.select import Candidate, Group
-from companion.diagnose.wind import WindWindow, kernel_regressor, locate
+from companion.diagnose.sizes import threshold
+from companion.diagnose.wind import WindWindow, kernel_regressor, locate, null_pvalue
+
+#: rows this far either side of a wind window count as "around" it for its held-out improvement (s)
+AROUND_WINDOW_S = 5.0
 
 
 def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProblem]:
@@ -40,7 +44,9 @@ def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProble
         steps=np.array([0.005 * wp, 0.005, 0.0005]), lower=np.array([0.3, 0.05, -T]),
         upper=np.array([80.0, 5.0, 0.25]), channels=("attitude_roll", "attitude_pitch"), units=("rad", "rad"),
         floors=(1e-4, 1e-4), residuals=residuals, row_times=[data.t_s, data.t_s],
-        candidates=[Candidate("attitude_dynamics", ("omega_p", "zeta")), Candidate("attitude_delay", ("delay",))])
+        candidates=[Candidate("attitude_dynamics", ("omega_p", "zeta"),
+                              matters=threshold("attitude_dynamics", {"omega_p": wp, "zeta": z})),
+                    Candidate("attitude_delay", ("delay",), matters=threshold("attitude_delay"))])
     return g, ap
 
 
@@ -80,7 +86,8 @@ def gyro_group(data: FlightData) -> tuple[Group, GyroProblem]:
         lower=np.array([-2.0, -2.0]), upper=np.array([2.0, 2.0]), channels=("gyro_x", "gyro_y"),
         units=("rad/s", "rad/s"), floors=(max(data.gyro_resolution_rad_s, 1e-5),) * 2, residuals=residuals,
         row_times=[gp.t_s, gp.t_s],
-        candidates=[Candidate("gyro_bias", ("bias_x", "bias_y"))], linear=("bias_x", "bias_y"))
+        candidates=[Candidate("gyro_bias", ("bias_x", "bias_y"), matters=threshold("gyro_bias"))],
+        linear=("bias_x", "bias_y"))
     return g, gp
 
 
@@ -98,8 +105,18 @@ class FlowGroupState:
         return self.window.start_s, self.window.end_s
 
     def as_dict(self) -> dict[str, float]:
+        """The window for the report: a force on from the first force window (or to the last)
+        is on from the first usable frame (to the last), as CONVENTIONS.md states."""
         s, e = self.start_end
         w = self.window
+        W = self.fp.force.idx
+        if w is not None and len(W):
+            t = self.fp.t
+            tol = (self.fp.h + 1) * self.fp.data.frame_s
+            if s <= t[W[0, 0]] + tol:
+                s = float(t[0])
+            if e >= t[W[-1, 1]] - tol:
+                e = float(t[-1])
         return {"start_s": s, "end_s": e, "start_sd": w.start_sd if w else math.nan,
                 "end_sd": w.end_sd if w else math.nan}
 
@@ -122,6 +139,31 @@ class FlowGroupState:
             cols[2][:, 0] = -x  # the force residual is (unexplained force) - F x
             cols[3][:, 1] = -x
         return cols
+
+
+    def null_pvalue(self, p_with: np.ndarray, p_without: np.ndarray) -> float:
+        """Tail probability of the wind search's statistic under no wind, calibrated on this
+        recording's force residual (``wind.null_pvalue``), with the other effects as in ``p_with``."""
+        del p_without
+        W = self.fp.force.idx
+        if len(W) < 4:
+            return 1.0
+        q = p_with.copy()
+        q[IDX["fx"]] = q[IDX["fy"]] = 0.0
+        e = self.fp.force_residual(q)
+        return null_pvalue(e, self.fp.t, W[:, 0], W[:, 1], seed=len(W))
+
+    def active_rows(self) -> list[np.ndarray] | None:
+        """Rows inside and around the current wind window: none on the flow channels, the force
+        windows that overlap [start - AROUND_WINDOW_S, end + AROUND_WINDOW_S]."""
+        s, e = self.start_end
+        if not (math.isfinite(s) and math.isfinite(e)):
+            return None
+        nf = self.fp.flow.idx.shape[0] * self.fp.flow.idx.shape[1] if self.fp.flow.idx.size else 0
+        f0, f1 = self.fp.force.t_start_s, self.fp.force.t_end_s
+        on = (f1 >= s - AROUND_WINDOW_S) & (f0 <= e + AROUND_WINDOW_S)
+        none = np.zeros(nf, dtype=bool)
+        return [none, none, on, on]
 
 
 def _positive_drag(p: dict[str, float]) -> str | None:
@@ -150,12 +192,14 @@ def flow_group(data: FlightData, cfg: Config) -> tuple[Group, FlowProblem, FlowG
         channels=("flow_x", "flow_y", "force_x", "force_y"), units=("rad", "rad", "N", "N"),
         floors=(max(data.flow_resolution_rad, 1e-5),) * 2 + (1e-3, 1e-3), residuals=residuals,
         row_times=[tf, tf, tw, tw],
-        candidates=[Candidate("flow_scale", ("scale_x", "scale_y")),
-                    Candidate("flow_yaw_misalignment", ("yaw",)),
-                    Candidate("flow_delay", ("delay",)),
-                    Candidate("flow_rotation_gain", ("gain",)),
-                    Candidate("range_offset", ("offset",)),
-                    Candidate("linear_drag", ("b",), physical=_positive_drag),
-                    Candidate("wind_force", ("fx", "fy"))],
-        linear=("b", "fx", "fy"), search=state.search, state=state.as_dict, searched_effect="wind_force")
+        candidates=[Candidate(e, ps, physical=phys, matters=threshold(e)) for e, ps, phys in (
+            ("flow_scale", ("scale_x", "scale_y"), None),
+            ("flow_yaw_misalignment", ("yaw",), None),
+            ("flow_delay", ("delay",), None),
+            ("flow_rotation_gain", ("gain",), None),
+            ("range_offset", ("offset",), None),
+            ("linear_drag", ("b",), _positive_drag),
+            ("wind_force", ("fx", "fy"), None))],
+        linear=("b", "fx", "fy"), search=state.search, state=state.as_dict, searched_effect="wind_force",
+        null_pvalue=state.null_pvalue, active_rows=state.active_rows)
     return g, fp, state

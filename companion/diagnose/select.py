@@ -30,6 +30,7 @@ on K x P x P statistics.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -47,6 +48,9 @@ class Candidate:
     effect: str
     params: tuple[str, ...]
     physical: Callable[[dict[str, float]], str | None] | None = None
+    #: optional: why fitted values are too small to matter physically (``companion.diagnose.sizes``),
+    #: or None when they matter
+    matters: Callable[[dict[str, float]], str | None] | None = None
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,15 @@ class Settings:
     cv_t_min: float = 2.0
     min_improvement_pct: float = 2.0
     chord_iterations: int = 2
+    #: a searched (localised) effect must beat this tail probability of its statistic under the
+    #: no-effect null, calibrated on the recording itself (``Group.null_pvalue``)
+    null_p_max: float = 0.01
+    #: forward-selection steps at most (each adds one effect or a pair; a set of effects is never
+    #: visited twice, so the selection ends even without this cap)
+    max_steps: int = 12
+    #: wall-clock budget of one group's selection (s); past it the selection keeps what it has
+    #: chosen and says so
+    time_budget_s: float = 20.0
 
 
 @dataclass
@@ -96,6 +109,12 @@ class Group:
     state: Callable[[], dict[str, float]] | None = None
     #: the effect that has a searched part
     searched_effect: str | None = None
+    #: for the searched effect: ``null_pvalue(p_with, p_without)`` = the tail probability of the
+    #: search statistic under the null of no effect, calibrated on the recording (a localised
+    #: effect cannot be judged by folds that hold out data where it is absent), and the rows of each
+    #: channel where it acts (inside and around its window) for the held-out improvement
+    null_pvalue: Callable[[np.ndarray, np.ndarray], float] | None = None
+    active_rows: Callable[[], list[np.ndarray] | None] | None = None
 
     def index(self, names: Sequence[str]) -> list[int]:
         return [self.params.index(n) for n in names]
@@ -117,6 +136,8 @@ class ModelScore:
     #: the searched part's state on all data and per fold (e.g. the wind window)
     state: dict[str, float] = field(default_factory=dict)
     fold_states: list[dict[str, float]] = field(default_factory=list)
+    #: exact scores only: each channel's held-out residual, row by row (the row's fold held out)
+    heldout_rows: list[np.ndarray] | None = None
 
     @property
     def cv_sse(self) -> float:
@@ -142,6 +163,8 @@ class Comparison:
     primary: int  # channel index where it improves most (relative)
     significant: bool = False
     reasons: list[str] = field(default_factory=list)
+    #: searched effects: tail probability of the search statistic under the calibrated null
+    null_p: float = math.nan
 
     @property
     def improvement_pct(self) -> float:
@@ -168,6 +191,11 @@ class Selector:
         self.g = group
         self.s = settings
         self.K = settings.folds
+        #: what the selection had to cut short, for the report
+        self.notes: list[str] = []
+        self._deadline = time.monotonic() + settings.time_budget_s
+        self._timed_out = False
+        self._null_cache: dict[tuple[tuple[float, ...], tuple[float, ...]], float] = {}
         self.cvblocks = [np.maximum(block_ids(t, t0_s, settings), 0) for t in group.row_times]
         self.folds = [b % settings.folds for b in self.cvblocks]
         self.per_cluster = max(1, int(round(settings.cluster_s / settings.block_s)))
@@ -454,7 +482,13 @@ class Selector:
 
     def compare(self, with_: ModelScore, without: ModelScore, effect: str | Sequence[str]) -> Comparison:
         """The evidence for ``effect`` (or several effects together): ``with_`` is ``without``
-        plus the effect(s)."""
+        plus the effect(s).
+
+        A searched (localised) effect, e.g. a wind over a window, is judged where it acts: by the
+        tail probability of its search statistic under a null calibrated on the recording
+        (``Group.null_pvalue``) instead of the consistency of its gain over folds (folds whose
+        held-out blocks lie outside the window cannot show a gain, whatever the effect's size),
+        and by its held-out improvement on the rows inside and around its window."""
         effects = [effect] if isinstance(effect, str) else list(effect)
         cands = [c for c in self.g.candidates if c.effect in effects]
         idx = self.g.index([n for c in cands for n in c.params])
@@ -472,59 +506,123 @@ class Selector:
         sd = float(np.std(diff, ddof=1)) if len(diff) > 1 else 0.0
         mean = float(np.mean(diff))
         cv_t = mean / (sd / math.sqrt(len(diff))) if sd > 0 else (math.inf if mean > 0 else 0.0)
+        localised = self.g.searched_effect in effects and self.g.null_pvalue is not None
         n_per_c = self.cnt.sum(axis=0)
         before = np.sqrt(without.heldout_ss / np.maximum(n_per_c, 1))
         after = np.sqrt(with_.heldout_ss / np.maximum(n_per_c, 1))
+        null_p = math.nan
+        if localised:
+            null_p = self._null_p(with_.p, without.p)
+            b_loc, a_loc = self._active_rms(with_, without)
+            before = np.where(np.isfinite(b_loc), b_loc, before)
+            after = np.where(np.isfinite(a_loc), a_loc, after)
         rel = np.where(before > 0, (before - after) / np.where(before > 0, before, 1.0), 0.0)
         primary = int(np.argmax(rel))
         comp = Comparison("+".join(effects), with_, without, z, cv_t, with_.bic() - without.bic(), before, after,
-                          primary)
+                          primary, null_p=null_p)
         reasons = []
-        if not cv_t >= self.s.cv_t_min:
+        if localised:
+            if not null_p <= self.s.null_p_max:
+                reasons.append(f"a window this strong is found in this recording's own noise too "
+                               f"(p = {null_p:.2g} > {self.s.null_p_max:g})")
+        elif not cv_t >= self.s.cv_t_min:
             reasons.append(f"held-out improvement not consistent over folds (t = {cv_t:.1f} < {self.s.cv_t_min:g})")
         if not z >= self.s.z_min:
             reasons.append(f"parameters within {self.s.z_min:g} sigma of the nominal model (z = {z:.1f})")
         if not comp.dbic < 0:
             reasons.append(f"the information criterion does not prefer it (dBIC = {comp.dbic:+.1f})")
         for cand in cands:
-            if cand.physical is not None:
-                why = cand.physical({n: float(with_.p[self.g.params.index(n)]) for n in cand.params})
+            vals = {n: float(with_.p[self.g.params.index(n)]) for n in cand.params}
+            for check in (cand.physical, cand.matters):
+                why = check(vals) if check is not None else None
                 if why:
                     reasons.append(why)
         if not comp.improvement_pct >= self.s.min_improvement_pct:
-            reasons.append(f"held-out residual lower by only {comp.improvement_pct:.2f} % "
+            where = " where it acts" if localised else ""
+            reasons.append(f"held-out residual{where} lower by only {comp.improvement_pct:.2f} % "
                            f"(< {self.s.min_improvement_pct:g} %)")
         comp.reasons = reasons
         comp.significant = not reasons
         return comp
 
+    def _null_p(self, p_with: np.ndarray, p_without: np.ndarray) -> float:
+        assert self.g.null_pvalue is not None
+        key = (tuple(np.round(p_with, 12)), tuple(np.round(p_without, 12)))
+        if key not in self._null_cache:
+            self._null_cache[key] = float(self.g.null_pvalue(p_with, p_without))
+        return self._null_cache[key]
+
+    def _active_rms(self, with_: ModelScore, without: ModelScore) -> tuple[np.ndarray, np.ndarray]:
+        """Per channel, the RMS of the residual without and with a searched effect on the rows
+        where it acts (NaN for a channel it does not act on): held out when both scores are exact,
+        on all-data fits otherwise (the calibrated null guards those against overfitting)."""
+        C = len(self.g.channels)
+        nan = np.full(C, np.nan)
+        rows = self.g.active_rows() if self.g.active_rows is not None else None
+        if rows is None:
+            return nan, nan.copy()
+        if with_.heldout_rows is not None and without.heldout_rows is not None:
+            rw, r0 = with_.heldout_rows, without.heldout_rows
+        else:
+            rw, r0 = self.g.residuals(with_.p), self.g.residuals(without.p)
+        b, a = nan.copy(), nan.copy()
+        for c in range(C):
+            m = rows[c]
+            if m is None or not np.any(m):
+                continue
+            x0 = np.nan_to_num(r0[c][m])
+            x1 = np.nan_to_num(rw[c][m])
+            b[c] = math.sqrt(float(np.mean(x0 * x0)))
+            a[c] = math.sqrt(float(np.mean(x1 * x1)))
+        return b, a
+
     # -- selection -------------------------------------------------------------------------------
+
+    def _out_of_time(self) -> bool:
+        if time.monotonic() <= self._deadline:
+            return False
+        if not self._timed_out:
+            self._timed_out = True
+            self.notes.append(f"{self.g.name}: selection stopped at its time budget of {self.s.time_budget_s:g} s; "
+                              f"effects not yet tried in combination may be missing")
+        return True
 
     def select_linear(self, banned: Sequence[str] = ()) -> list[str]:
         """Forward selection with a backward check, on the linearisation (see module docstring).
         Each step tries every single effect and every pair (two effects can be needed together:
         a flow scale and a rangefinder offset that cancel at one height); a pair is taken only
-        when it beats the best single effect on held-out data and by the information criterion."""
+        when it beats the best single effect on held-out data and by the information criterion.
+
+        It always ends: a set of effects once left is never entered again (forward steps that
+        would lead back to one are refused, so add A / drop B / add B / drop A cannot cycle), at
+        most ``max_steps`` steps are taken, and the time budget is respected."""
         names = [c.effect for c in self.g.candidates if c.effect not in banned]
         chosen: list[str] = []
-        while True:
+        visited: set[frozenset[str]] = {frozenset()}
+        for _step in range(self.s.max_steps):
+            if self._out_of_time():
+                break
             base = self.score_linear(chosen)
             rest = [e for e in names if e not in chosen]
             best: Comparison | None = None
             for e in rest:
+                if frozenset([*chosen, e]) in visited:
+                    continue
                 comp = self.compare(self.score_linear([*chosen, e], self._judged(e)), base, e)
                 if comp.significant and (best is None or comp.with_.cv_sse < best.with_.cv_sse):
                     best = comp
             best_pair: Comparison | None = None
             for i, e1 in enumerate(rest):
                 for e2 in rest[i + 1:]:
+                    if frozenset([*chosen, e1, e2]) in visited:
+                        continue
                     with_ = self.score_linear([*chosen, e1, e2], self._judged(e1, e2))
                     comp = self.compare(with_, base, [e1, e2])
                     if not comp.significant:
                         continue
                     if best is not None:  # the pair must earn its extra parameters over the best single
                         vs = self.compare(with_, best.with_, [x for x in (e1, e2) if x not in best.with_.effects])
-                        if not (vs.cv_t >= self.s.cv_t_min and vs.dbic < 0):
+                        if not ((vs.cv_t >= self.s.cv_t_min or vs.null_p <= self.s.null_p_max) and vs.dbic < 0):
                             continue
                     if best_pair is None or comp.with_.cv_sse < best_pair.with_.cv_sse:
                         best_pair = comp
@@ -532,13 +630,18 @@ class Selector:
             if step is None:
                 break
             chosen.extend(e for e in step.effect.split("+") if e not in chosen)
+            visited.add(frozenset(chosen))
             while len(chosen) > 1:  # backward check: every chosen effect must still earn its place
                 weak = [e for e in chosen
-                        if not self.compare(self.score_linear(chosen, self._judged(e)),
-                                            self.score_linear([x for x in chosen if x != e]), e).significant]
+                        if frozenset(x for x in chosen if x != e) not in visited
+                        and not self.compare(self.score_linear(chosen, self._judged(e)),
+                                             self.score_linear([x for x in chosen if x != e]), e).significant]
                 if not weak:
                     break
                 chosen.remove(weak[0])
+                visited.add(frozenset(chosen))
+        else:
+            self.notes.append(f"{self.g.name}: selection stopped after {self.s.max_steps} steps")
         return chosen
 
     def _judged(self, *effects: str) -> bool:
@@ -547,21 +650,24 @@ class Selector:
 
     def select(self) -> tuple[list[str], ModelScore, dict[str, Comparison]]:
         """Linearised selection confirmed by exact refits: an effect whose exact drop-one
-        comparison fails is banned and the selection rerun. Returns the chosen effects, the exact
-        score of the chosen model, and the evidence for every candidate (exact for the chosen ones
-        and for those the exact refit turned down, linearised add-one for the others)."""
+        comparison fails is banned and the selection rerun (at most once per candidate, so this
+        ends too). Returns the chosen effects, the exact score of the chosen model, and the
+        evidence for every candidate (exact for the chosen ones and for those the exact refit
+        turned down, linearised add-one for the others)."""
         banned: dict[str, Comparison] = {}
-        while True:
+        evidence: dict[str, Comparison] = {}
+        for _round in range(len(self.g.candidates) + 1):
             chosen = self.select_linear(list(banned))
             final = self.score_exact(chosen)
             # linearise again where the chosen model is (the largest model may sit far away along
             # directions the data hardly constrain), and choose again from there
-            self._relinearise(final.p)
-            again = self.select_linear(list(banned))
-            if set(again) != set(chosen):
-                chosen = again
-                final = self.score_exact(chosen)
-            evidence: dict[str, Comparison] = {}
+            if not self._out_of_time():
+                self._relinearise(final.p)
+                again = self.select_linear(list(banned))
+                if set(again) != set(chosen):
+                    chosen = again
+                    final = self.score_exact(chosen)
+            evidence = {}
             failing = []
             for e in chosen:
                 with_ = self.score_exact(chosen, final.p, relocate=True) if self._judged(e) else final
@@ -610,6 +716,7 @@ class Selector:
         fold_sse = np.zeros(K)
         ho = np.zeros(len(self.g.channels))
         fold_states = []
+        rows = [np.zeros(len(t)) for t in self.g.row_times]
         for k in range(K):
             train = [f != k for f in self.folds]
             if searched and relocate:
@@ -619,7 +726,9 @@ class Selector:
             pk = self._gauss_newton(p, free, train, iterations=max(1, it - 1)) if free else p
             p_folds[k] = pk
             for c, r in enumerate(self.weighted(pk)):
-                rk = r[self.folds[c] == k]
+                held = self.folds[c] == k
+                rk = r[held]
+                rows[c][held] = rk * self.sigma[c]
                 sk = float(rk @ rk)
                 fold_sse[k] += sk
                 ho[c] += sk * self.sigma[c] ** 2
@@ -628,7 +737,7 @@ class Selector:
         elif self.widx:
             self._search(self.p_lin, None)
         return ModelScore(tuple(effects), free, p, p_folds, self._cov(free, p, p_folds, full_sse), fold_sse, ho,
-                          full_sse, self.n_rows, state_full, fold_states)
+                          full_sse, self.n_rows, state_full, fold_states, heldout_rows=rows)
 
 
 def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -21,6 +21,12 @@ from companion.diagnose.flowmodel import ramp_integral
 MIN_WIND_S = 4.0
 #: the coarse search works on at most this many boundaries (longer recordings are pooled)
 MAX_COARSE = 800
+#: the null calibration's scan works on at most this many pooled windows
+MAX_NULL = 240
+#: sign-flip blocks of the null calibration (s): longer than the force residual's correlation
+NULL_BLOCK_S = 3.0
+#: bootstrap replicates of the null calibration
+NULL_REPS = 99
 
 
 @dataclass(frozen=True)
@@ -108,6 +114,14 @@ def locate(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: in
         grid = grid[grid >= start + min_s]
         if len(grid):
             end = float(grid[int(np.argmax(fit(np.full(len(grid), start), grid)[0]))])
+    if mask is not None and np.any(w > 0):
+        # no evidence past the rows fitted on: a force that lasts to the last of them (or from
+        # the first) is taken to go on over the rows held out there, not to stop where they begin
+        used = w > 0
+        if end >= float(tm1[used].max()) - step:
+            end = max(end, float(hi_sup[-1]))
+        if start <= float(tm0[used].min()) + step:
+            start = min(start, float(lo_sup[0]))
     gains, f = fit(np.array([start]), np.array([end]))
     # profile of each end: where the explained sum of squares drops by one noise variance (the
     # residual's, inflated by its lag-one correlation, as turbulence makes neighbouring windows alike)
@@ -129,3 +143,65 @@ def locate(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: in
     start_sd = sd(gs, fit(gs, np.full(len(gs), end))[0]) if len(gs) else math.nan
     end_sd = sd(ge, fit(np.full(len(ge), start), ge)[0]) if len(ge) else math.nan
     return WindWindow(start, end, float(f[0, 0]), float(f[0, 1]), float(gains[0]), start_sd, end_sd)
+
+
+def _scan(ep: np.ndarray, wp: np.ndarray, b0: np.ndarray, b1: np.ndarray, min_s: float) -> tuple[float, int, int]:
+    """Largest explained sum of squares of one mean shift over pooled windows j1..j2-1 lasting at
+    least ``min_s``: (gain, j1, j2). ``ep`` (2, m) pooled residual sums, ``wp`` (m,) weights."""
+    m = ep.shape[1]
+    ce = np.concatenate([np.zeros((2, 1)), np.cumsum(ep, axis=1)], axis=1)
+    cw = np.concatenate([[0.0], np.cumsum(wp)])
+    j1 = np.arange(m)[:, None]
+    j2 = np.arange(1, m + 1)[None, :]
+    dur = b1[np.minimum(j2, m) - 1] - b0[j1]
+    nwt = cw[j2] - cw[j1]
+    num = ((ce[:, None, 1:] - ce[:, :-1, None]) ** 2).sum(axis=0)
+    ok = (j2 > j1) & (dur >= min_s) & (nwt > 0)
+    gain = np.where(ok, num / np.where(nwt > 0, nwt, 1.0), -1.0)
+    flat = int(np.argmax(gain))
+    a, b = divmod(flat, m)
+    return float(gain[a, b]), a, b + 1
+
+
+def null_pvalue(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, mask: np.ndarray | None = None,
+                min_s: float = MIN_WIND_S, reps: int = NULL_REPS, seed: int = 0) -> float:
+    """Tail probability of the window search's statistic (the largest sum of squares one force
+    window explains) under the null of no force, calibrated on the recording itself.
+
+    ``e`` (2, n_windows) is the force residual without the force. The null residual is ``e`` with
+    the best window's mean shift removed; its blocks of ``NULL_BLOCK_S`` get random signs (a wild
+    block bootstrap: zero-mean noise with the residual's own spread, correlation and outliers,
+    and no force) and the same search runs on each replicate. A penalised likelihood-ratio test
+    whose penalty is the scan over every window, measured rather than assumed."""
+    nw = e.shape[1]
+    if nw < 4:
+        return 1.0
+    w = np.ones(nw) if mask is None else mask.astype(float)
+    e = np.where(np.isfinite(e), e, 0.0) * w
+    tm0, tm1 = t_s[k0], t_s[k1]
+    pool = max(1, math.ceil(nw / MAX_NULL))
+    m = nw // pool
+    if m < 2:
+        return 1.0
+    ep = e[:, : m * pool].reshape(2, m, pool).sum(axis=2)
+    wp = w[: m * pool].reshape(m, pool).sum(axis=1)
+    b0 = tm0[: m * pool: pool]
+    b1 = tm1[pool - 1: m * pool: pool]
+    observed, j1, j2 = _scan(ep, wp, b0, b1, min_s)
+    if observed <= 0:
+        return 1.0
+    # the null residual: the best window's mean shift removed
+    shift = ep[:, j1:j2].sum(axis=1) / max(float(wp[j1:j2].sum()), 1e-12)
+    r = ep.copy()
+    r[:, j1:j2] -= shift[:, None] * wp[None, j1:j2]
+    span = float(np.median(b1 - b0)) if m else 1.0
+    per = max(1, int(round(NULL_BLOCK_S / max(span, 1e-6))))
+    blocks = np.arange(m) // per
+    nb = int(blocks[-1]) + 1
+    rng = np.random.default_rng(seed)
+    exceed = 0
+    for _ in range(reps):
+        sign = rng.choice((-1.0, 1.0), size=nb)[blocks]
+        g, _a, _b = _scan(r * sign, wp, b0, b1, min_s)
+        exceed += g >= observed
+    return (1 + exceed) / (reps + 1)
