@@ -81,12 +81,20 @@ class Unexplained:
     rms: float
     #: best-fitting candidate term from sparse regression, in words (optional)
     best_term: str | None = None
+    #: the channel's noise scale (same unit as ``rms``), when known
+    noise: float | None = None
+
+    @property
+    def times_noise(self) -> float:
+        return self.rms / self.noise if self.noise else float("nan")
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"channel": self.channel, "start_s": _num(self.start_s),
                                "end_s": _num(self.end_s), "rms": _num(self.rms)}
         if self.best_term is not None:
             out["best_term"] = self.best_term
+        if self.noise is not None:
+            out["noise"] = _num(self.noise)
         return out
 
 
@@ -99,6 +107,8 @@ class Report:
     #: what was skipped or could not be judged, one line each
     notes: list[str] = field(default_factory=list)
     mode: str = "flight"  # "flight" (closed loop) or "sensor" (sensor-only)
+    #: the first line a reader needs, in plain words (``diagnose`` writes it)
+    headline: str = ""
 
     def significant(self) -> list[Finding]:
         return [f for f in self.findings if f.significant]
@@ -107,6 +117,7 @@ class Report:
         return {
             "recording": self.recording,
             "mode": self.mode,
+            "headline": self.headline,
             "baseline": {"channels": {k: {"rms": _num(v)} for k, v in self.baseline_rms.items()}},
             "findings": [f.to_json() for f in self.findings],
             "unexplained": [u.to_json() for u in self.unexplained],

@@ -91,7 +91,7 @@ def run_cli(args: argparse.Namespace) -> int:
 def summary(report: Report) -> str:
     """A short human summary of a report."""
     head = next((n for n in report.notes if n.startswith("profile ")), "")
-    lines = [f"{report.recording}: {head}"]
+    lines = [f"{report.recording}: {report.headline}" if report.headline else f"{report.recording}:", head]
     # what the reader skipped or repaired and the frames left out: a damaged recording says so
     lines += [f"note: {n}" for n in report.notes if n != head and not n.startswith("diagnosed in")]
     found = report.significant()
@@ -106,7 +106,7 @@ def summary(report: Report) -> str:
                    f"({fit.improvement_pct:.0f} % lower)") if fit else ""
             lines.append(f"  {f.effect}: {ps}; {imp}")
             lines.append(f"    {f.explanation}")
-    else:
+    elif not report.headline:
         lines.append("no effect the model leaves out earns its parameters: the recording fits the nominal model")
     not_found = [f.effect for f in report.findings if not f.significant]
     if not_found:

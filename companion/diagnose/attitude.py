@@ -27,6 +27,12 @@ from scipy import linalg, signal
 
 from companion.diagnose.channels import FlightData
 
+#: a run of at least this many lost (bridged) commands restarts the attitude simulation, and so
+#: does a single one across which the command jumps by more than ``RESTART_JUMP_RAD`` (a setpoint
+#: step: interpolation cannot know where the jump fell)
+RESTART_AFTER_LOST = 2
+RESTART_JUMP_RAD = 0.02
+
 
 def discretise(omega_p: float, zeta: float, T: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Exact zero-order-hold discretisation of the attitude loop: (Ad, Bd, b, a) with
@@ -78,7 +84,25 @@ class AttitudeProblem:
         self.T = data.frame_s
         self.u = np.stack([data.roll_cmd_rad, data.pitch_cmd_rad])
         self.y = np.stack([data.roll_rad, data.pitch_rad])
-        self.segments = data.segments()
+        #: frames whose residual the attitude channel uses (``groups.attitude_rows``)
+        self.rows = np.ones(data.n, dtype=bool)
+        # the simulation restarts from the recorded attitude after a run of lost commands (it
+        # would otherwise carry the bridged commands' error for a settling time)
+        self.segments = []
+        u = self.u
+        for a, b in data.segments():
+            cuts = [a]
+            lost = ~data.cmd_rec[a:b]
+            if np.any(lost):
+                x = np.diff(np.concatenate([[0], lost.astype(int), [0]]))
+                for s0, s1 in zip(np.flatnonzero(x == 1), np.flatnonzero(x == -1), strict=True):
+                    k0, k1 = a + int(s0), a + int(s1)  # lost commands k0..k1-1
+                    jump = np.max(np.abs(u[:, min(k1, b - 1)] - u[:, max(k0 - 1, a)]))
+                    if k1 - k0 >= RESTART_AFTER_LOST or jump > RESTART_JUMP_RAD:
+                        cuts += [k0, k1]
+            cuts.append(b)
+            cuts = sorted(set(c for c in cuts if a <= c <= b))
+            self.segments += [(c0, c1) for c0, c1 in zip(cuts[:-1], cuts[1:], strict=True) if c1 - c0 >= 2]
         # initial rate of each segment from the recorded attitude (one-sided difference)
         self.rate0 = []
         for a, b in self.segments:
@@ -108,7 +132,7 @@ class AttitudeProblem:
         Ad, Bd, b, a = discretise(omega_p, zeta, self.T)
         Ainv = np.linalg.inv(Ad)
         u = self.delayed_command(delay_s)
-        out = np.empty_like(self.y)
+        out = np.full_like(self.y, np.nan)
         for (s0, s1), r0 in zip(self.segments, self.rate0, strict=True):
             for i in (0, 1):
                 us = u[i, s0:s1]
@@ -126,5 +150,5 @@ class AttitudeProblem:
         (the offset estimated on ``fit_mask`` frames, all frames by default)."""
         e = self.y - self.simulate(omega_p, zeta, delay_s)
         if fit_mask is None:
-            return e - e.mean(axis=1, keepdims=True)
-        return e - e[:, fit_mask].mean(axis=1, keepdims=True)
+            return e - np.nanmean(e, axis=1, keepdims=True)
+        return e - np.nanmean(e[:, fit_mask], axis=1, keepdims=True)

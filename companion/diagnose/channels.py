@@ -27,7 +27,6 @@ import numpy as np
 
 from companion.config import Config
 from companion.errors import RecordingError
-from companion.estimator import frame_spacing_array
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, Profile, detect_profile, flow_columns
 from companion.recording import MessageTable, Recording
 
@@ -35,6 +34,15 @@ COMPANION_COMPONENT = 191
 DOWNWARD = 25
 #: a segment shorter than this is not used (s)
 MIN_SEGMENT_S = 5.0
+#: gaps in a signal up to this long are bridged from its neighbours (lost telemetry, slow logging);
+#: a longer gap ends the segment (s)
+MAX_BRIDGE_S = 0.6
+#: a flow timestamp this far behind the previous one (in file order) starts a new boot session (s)
+REBOOT_BACKSTEP_S = 1.0
+_FLAGS = ("flow_rec", "att_rec", "gyro_rec", "cmd_rec")
+_ARRAYS = ("t_s", "dt_s", "seg", "dphi_x_rad", "dphi_y_rad", "gyro_x_rad_s", "gyro_y_rad_s", "range_m", "roll_rad",
+           "pitch_rad", "yaw_rad", "roll_cmd_rad", "pitch_cmd_rad", "vx_set_m_s", "vy_set_m_s", "truth_vx_m_s",
+           "truth_vy_m_s")
 
 
 @dataclass
@@ -76,6 +84,17 @@ class FlightData:
     #: standard deviation of the recorded values' rounding (gyro: mrad/s integers; flow: counts)
     gyro_resolution_rad_s: float = 0.0
     flow_resolution_rad: float = 0.0
+    #: per frame, whether the signal was recorded at the frame (False: bridged over a gap from its
+    #: neighbours, lost telemetry or a slower logging rate); None = recorded everywhere
+    flow_rec: np.ndarray | None = None
+    att_rec: np.ndarray | None = None
+    gyro_rec: np.ndarray | None = None
+    cmd_rec: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        for name in _FLAGS:
+            if getattr(self, name) is None:
+                setattr(self, name, np.ones(self.n, dtype=bool))
 
     @property
     def n(self) -> int:
@@ -106,6 +125,8 @@ class FlightData:
         brk = np.ones(len(idx), dtype=bool)
         brk[1:] = (np.diff(idx) != 1) | (np.diff(old) != 0)
         kw["seg"] = np.cumsum(brk) - 1
+        for name in _FLAGS:
+            kw[name] = getattr(self, name)[idx]
         return FlightData(self.path, self.profile, self.profile_reason, self.frame_s, self.command_source,
                           notes=list(self.notes), gyro_resolution_rad_s=self.gyro_resolution_rad_s,
                           flow_resolution_rad=self.flow_resolution_rad, **kw)
@@ -198,11 +219,79 @@ def has_commands(rec: Recording) -> bool:
 # extraction
 
 
+def _sessions(rec: Recording, flow_name: str, sysid: int, prof: Profile, q: float) -> list[Recording]:
+    """The recording cut into boot sessions: a flow time that steps back by more than
+    ``REBOOT_BACKSTEP_S`` in file order is a reboot (logs kept across reboots, or concatenated).
+    Each session holds the records from its first flow frame to the next session's."""
+    of = _from_vehicle(rec.tables[flow_name], sysid)
+    order = np.argsort(of.record, kind="stable")
+    tb = np.asarray(flow_columns(of, prof, q).time_s, float)[order]
+    back = np.flatnonzero(np.diff(tb) < -REBOOT_BACKSTEP_S) + 1
+    if len(back) == 0:
+        return [rec]
+    cuts = [-np.inf, *[float(of.record[order][i]) for i in back], np.inf]
+    out = []
+    for lo, hi in zip(cuts[:-1], cuts[1:], strict=True):
+        tables = {n: t.select((t.record >= lo) & (t.record < hi)) for n, t in rec.tables.items()}
+        out.append(Recording(rec.path, tables, rec.source_format, profile_hint=rec.profile_hint))
+    return out
+
+
+def _grid(tb: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
+    """Frame times on a regular grid: the recorded ones, plus frames inserted in gaps up to
+    ``MAX_BRIDGE_S`` at the gap's own mean spacing. Returns (times, index of each recorded frame
+    in the grid)."""
+    d = np.diff(tb)
+    missing = np.where((d > 1.5 * T) & (d <= MAX_BRIDGE_S + 0.5 * T), np.rint(d / T).astype(int) - 1, 0)
+    missing = np.maximum(missing, 0)
+    pos = np.concatenate([[0], np.cumsum(missing + 1)])
+    n = int(pos[-1]) + 1
+    t = np.empty(n)
+    t[pos] = tb
+    for i in np.flatnonzero(missing):
+        k = missing[i]
+        t[pos[i] + 1: pos[i] + 1 + k] = tb[i] + d[i] * np.arange(1, k + 1) / (k + 1)
+    return t, pos
+
+
+def _interp_gapped(t_query: np.ndarray, t: np.ndarray, y: np.ndarray, max_gap_s: float,
+                   cubic: bool = False) -> np.ndarray:
+    """Interpolation that bridges gaps up to ``max_gap_s`` between samples (NaN across longer
+    gaps and outside the samples); ``cubic``: a cubic spline (an attitude logged slower than the
+    frames), else linear."""
+    ok = np.isfinite(y)
+    t, y = t[ok], y[ok]
+    out = np.full(len(t_query), np.nan)
+    if len(t) == 0:
+        return out
+    if cubic and len(t) >= 4:
+        from scipy.interpolate import CubicSpline
+
+        out = CubicSpline(t, y, extrapolate=False)(t_query)
+    elif len(t) >= 2:
+        out = np.interp(t_query, t, y)
+    i = np.clip(np.searchsorted(t, t_query), 1, max(len(t) - 1, 1))
+    lo, hi = t[i - 1], t[np.minimum(i, len(t) - 1)]
+    exact = np.minimum(np.abs(t_query - lo), np.abs(t_query - hi)) <= 1e-9
+    inside = (t_query >= t[0]) & (t_query <= t[-1]) & (hi - lo <= max_gap_s)
+    out = np.where(exact, np.where(np.abs(t_query - lo) <= np.abs(t_query - hi), y[i - 1],
+                                   y[np.minimum(i, len(t) - 1)]), out)
+    out[~(inside | exact)] = np.nan
+    return out
+
+
+def _recorded(t_query: np.ndarray, t: np.ndarray, tol_s: float) -> np.ndarray:
+    return _nearest(t_query, t, tol_s) >= 0
+
+
 def extract(rec: Recording, cfg: Config, profile: str | None = None) -> FlightData:
     """Aligned per-frame arrays of a closed-loop recording (see the module docstring).
 
-    Raises RecordingError naming the messages that are missing, or when no stretch of at least
-    ``MIN_SEGMENT_S`` of valid, commanded frames exists.
+    Lost telemetry and signals logged at other rates than the flow are bridged up to
+    ``MAX_BRIDGE_S`` (each signal's ``*_rec`` flag says where it was really recorded); boot
+    sessions (a log across reboots) are all used, one after the other. Raises RecordingError
+    naming the messages that are missing, or when no stretch of at least ``MIN_SEGMENT_S`` of
+    valid, commanded frames exists.
     """
     name = Path(rec.path).name
     if profile is None:
@@ -217,41 +306,191 @@ def extract(rec: Recording, cfg: Config, profile: str | None = None) -> FlightDa
         missing.append("SET_ATTITUDE_TARGET (or ATTITUDE_TARGET)")
     if missing:
         raise RecordingError(f"{name}: missing {', '.join(missing)} (needed to diagnose a closed-loop flight)")
-    t0 = rec.t0_s
     flow_name = FLOW_MESSAGE[prof]
     sysid = _vehicle_sysid(rec, flow_name)
+    sessions = _sessions(rec, flow_name, sysid, prof, cfg.flow_sensor.q_rad_per_count)
+    parts = []
+    for sess in sessions:
+        try:
+            parts.append(_extract_session(sess, rec.t0_s, cfg, prof, reason, sysid))
+        except RecordingError:
+            if len(sessions) == 1:
+                raise
+    if not parts:
+        raise RecordingError(f"{name}: no boot session with enough {flow_name} frames")
+    data = _concat(parts) if len(parts) > 1 else parts[0]
+    if len(sessions) > 1:
+        data.notes.append(f"{len(sessions)} boot sessions (the flow time starts again), {len(parts)} used, "
+                          f"one after the other")
+    n_all = data.n
+    good = (np.isfinite(data.dphi_x_rad) & np.isfinite(data.dphi_y_rad) & np.isfinite(data.gyro_x_rad_s)
+            & np.isfinite(data.gyro_y_rad_s) & np.isfinite(data.range_m) & (data.range_m > 0)
+            & np.isfinite(data.roll_rad) & np.isfinite(data.pitch_rad) & np.isfinite(data.roll_cmd_rad)
+            & np.isfinite(data.pitch_cmd_rad))
+    _bridge_notes(data, good)
+    n_bad = int(np.count_nonzero(~good))
+    if n_bad:
+        data.notes.append(f"{n_bad} of {n_all} flow frames unusable (no command, invalid flow, range, gyro or "
+                          f"attitude at or near the frame)")
+    data = data.take(good)
+    # keep segments long enough to fit over
+    keep = np.zeros(data.n, dtype=bool)
+    for a, b in data.segments():
+        if data.t_s[b - 1] - data.t_s[a] >= MIN_SEGMENT_S:
+            keep[a:b] = True
+    if not np.any(keep):
+        raise RecordingError(f"{name}: no stretch of {MIN_SEGMENT_S:.0f} s with flow, gyro, range, attitude and "
+                             f"a commanded attitude all valid (gaps up to {MAX_BRIDGE_S:g} s bridged)")
+    if not np.all(keep):
+        data.notes.append(f"{int(np.count_nonzero(~keep))} frames in stretches shorter than {MIN_SEGMENT_S:.0f} s "
+                          f"left out")
+        data = data.take(keep)
+    # the first frame of each segment has no previous frame: its increment is not trusted
+    first = np.ones(data.n, dtype=bool)
+    first[1:] = np.diff(data.seg) != 0
+    data.dphi_x_rad[first] = 0.0
+    data.dphi_y_rad[first] = 0.0
+    data.dt_s[first] = cfg.flow_sensor.frame_period_s
+    return data
+
+
+def _bridge_notes(data: FlightData, good: np.ndarray) -> None:
+    """Say how much of each signal was bridged rather than recorded, over the usable frames."""
+    n = int(np.count_nonzero(good))
+    if n == 0:
+        return
+    parts = []
+    for flag, what in (("flow_rec", "flow"), ("att_rec", "attitude"), ("gyro_rec", "gyro"),
+                       ("cmd_rec", "command")):
+        miss = int(np.count_nonzero(~getattr(data, flag)[good]))
+        if miss:
+            parts.append(f"{what} {100.0 * miss / n:.1f} %")
+    if parts:
+        data.notes.append("bridged from neighbouring samples (lost telemetry or slower logging), share of frames: "
+                          + ", ".join(parts))
+
+
+def _concat(parts: list[FlightData]) -> FlightData:
+    """Sessions one after the other: segment ids kept apart, times shifted where a session's
+    times overlap the previous one's (concatenated logs), with a note."""
+    kw: dict[str, np.ndarray] = {}
+    shift = 0.0
+    end = -np.inf
+    seg0 = 0
+    notes: list[str] = []
+    shifted = False
+    pieces: dict[str, list[np.ndarray]] = {k: [] for k in (*_ARRAYS, *_FLAGS)}
+    for p in parts:
+        if p.n == 0:
+            continue
+        shift = 0.0
+        if p.t_s[0] <= end:
+            shift = end + 1.0 - float(p.t_s[0])
+            shifted = True
+        for k in pieces:
+            v = getattr(p, k)
+            if k == "t_s":
+                v = v + shift
+            elif k == "seg":
+                v = v - v.min() + seg0
+            pieces[k].append(v)
+        seg0 = int(pieces["seg"][-1].max()) + 1
+        end = float(pieces["t_s"][-1][-1])
+        notes.extend(x for x in p.notes if x not in notes)
+    for k, v in pieces.items():
+        kw[k] = np.concatenate(v)
+    if shifted:
+        notes.append("a session's log times overlap the previous one's: it is placed after it (report times "
+                     "past the first session are shifted)")
+    p0 = parts[0]
+    return FlightData(p0.path, p0.profile, p0.profile_reason, p0.frame_s, p0.command_source, notes=notes,
+                      gyro_resolution_rad_s=p0.gyro_resolution_rad_s, flow_resolution_rad=p0.flow_resolution_rad, **kw)
+
+
+def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reason: str, sysid: int) -> FlightData:
+    """One boot session on its regular frame grid, every frame kept (``extract`` filters)."""
+    name = Path(rec.path).name
+    flow_name = FLOW_MESSAGE[prof]
     notes: list[str] = []
     T = cfg.flow_sensor.frame_period_s
+    bridge = MAX_BRIDGE_S
 
     # flow frames
     of = _from_vehicle(rec.tables[flow_name], sysid)
+    if len(of) == 0:
+        raise RecordingError(f"{name}: no {flow_name} frames from the vehicle")
     fc = flow_columns(of, prof, cfg.flow_sensor.q_rad_per_count)
-    tb, sx, sy, qual, integ, tlog = _sorted_unique(np.asarray(fc.time_s, float), np.asarray(fc.scene_x, float),
+    tr, sx, sy, qual, integ, tlog = _sorted_unique(np.asarray(fc.time_s, float), np.asarray(fc.scene_x, float),
                                                    np.asarray(fc.scene_y, float), np.asarray(fc.quality, float),
                                                    np.asarray(fc.integration_s, float), of.t_s)
-    if len(tb) < 10:
-        raise RecordingError(f"{name}: only {len(tb)} {flow_name} frames")
-    offset = float(np.median(tlog - tb))
-    dt = frame_spacing_array(tb, T)
+    if len(tr) < 10:
+        raise RecordingError(f"{name}: only {len(tr)} {flow_name} frames")
+    offset = float(np.median(tlog - tr))
+    # each recorded frame's scene-angle increment over its own period: a frame after lost ones
+    # covers only its own period (counts) or gives a rate (ArduPilot) held over its own period
+    d = np.diff(tr)
+    own = np.full(len(tr), T)
+    own[1:] = np.where((d > 0) & (d <= 1.5 * T), d, T)
     if fc.increment:
-        dphi_x, dphi_y = sx, sy
-        # a px4 frame's increment covers its own integration time: rescale to the frame spacing
-        ok = np.isfinite(integ) & (integ > 0)
-        if np.any(ok):
-            dphi_x = np.where(ok, sx * dt / np.where(ok, integ, 1.0), sx)
-            dphi_y = np.where(ok, sy * dt / np.where(ok, integ, 1.0), sy)
+        ix, iy = sx, sy
+        ok_int = np.isfinite(integ) & (integ > 0)
+        if np.any(ok_int):  # a px4 frame's increment covers its own integration time: rescale
+            ix = np.where(ok_int, sx * own / np.where(ok_int, integ, 1.0), sx)
+            iy = np.where(ok_int, sy * own / np.where(ok_int, integ, 1.0), sy)
     else:
-        dphi_x, dphi_y = sx * dt, sy * dt
-    valid = (qual > 0) & np.isfinite(dphi_x) & np.isfinite(dphi_y)
+        ix, iy = sx * own, sy * own
+    valid_rec = (qual > 0) & np.isfinite(ix) & np.isfinite(iy)
+
+    tb, pos = _grid(tr, T)
+    n = len(tb)
+    flow_rec = np.zeros(n, dtype=bool)
+    flow_rec[pos] = valid_rec
+    dt = np.full(n, T)
+    dt[1:] = np.diff(tb)
+    dt[1:][np.diff(tb) > bridge + 0.5 * T] = T
+
+    # attitude estimate (a cubic through slower or gapped samples)
+    at = _from_vehicle(rec.tables["ATTITUDE"], sysid)
+    att_t, roll, pitch, yaw = _sorted_unique(np.asarray(at["time_boot_ms"], float) * 1e-3,
+                                             np.asarray(at["roll"], float), np.asarray(at["pitch"], float),
+                                             np.unwrap(np.asarray(at["yaw"], float)))
+    roll_k = _interp_gapped(tb, att_t, roll, bridge, cubic=True)
+    pitch_k = _interp_gapped(tb, att_t, pitch, bridge, cubic=True)
+    yaw_k = _interp_gapped(tb, att_t, yaw, bridge)
+    att_rec = _recorded(tb, att_t, 0.5 * T)
+
+    # flow increments on the grid: recorded frames as they are; a lost frame's increment is the
+    # rotation the attitude shows over it plus the translational rate interpolated from the
+    # recorded neighbours (translation is smooth; rotation is not, and the attitude has it)
+    dphi = []
+    for inc, s_ax, ang in ((ix, -1.0, pitch_k), (iy, 1.0, roll_k)):
+        g = np.full(n, np.nan)
+        g[pos] = np.where(valid_rec, inc, np.nan)
+        rot = np.zeros(n)
+        rot[1:] = s_ax * np.diff(ang)
+        rot[~np.isfinite(rot)] = 0.0
+        trans_rate = (g - rot) / dt
+        have = np.isfinite(trans_rate)
+        if np.any(~have) and np.count_nonzero(have) >= 2:
+            fill = _interp_gapped(tb, tb[have], trans_rate[have], bridge)
+            g = np.where(have, g, fill * dt + rot)
+        dphi.append(g)
+    dphi_x, dphi_y = dphi
+    # a gap too long to bridge: the frame after it starts a new segment
+    brk = np.ones(n, dtype=bool)
+    brk[1:] = np.diff(tb) > bridge + 0.5 * T
 
     # gyro
     gname = next(g for g in GYRO_MESSAGES if g in rec)
-    g = _from_vehicle(rec.tables[gname], sysid)
+    gtab = _from_vehicle(rec.tables[gname], sysid)
     scale = GYRO_MESSAGES[gname]
-    gt, gx, gy = _sorted_unique(np.asarray(g["time_usec"], float) * 1e-6, np.asarray(g["xgyro"], float) * scale,
-                                np.asarray(g["ygyro"], float) * scale)
-    gyro_x = _interp(tb, gt, gx, 1.5 * T)
-    gyro_y = _interp(tb, gt, gy, 1.5 * T)
+    gtime = "time_usec" if "time_usec" in gtab.fields else "time_boot_ms"
+    gscale = 1e-6 if gtime == "time_usec" else 1e-3
+    gt, gx, gy = _sorted_unique(np.asarray(gtab[gtime], float) * gscale, np.asarray(gtab["xgyro"], float) * scale,
+                                np.asarray(gtab["ygyro"], float) * scale)
+    gyro_x = _interp_gapped(tb, gt, gx, bridge)
+    gyro_y = _interp_gapped(tb, gt, gy, bridge)
+    gyro_rec = _recorded(tb, gt, 0.5 * T)
 
     # range (downward only; outside the sensor's own limits is invalid)
     ds = _from_vehicle(rec.tables["DISTANCE_SENSOR"], sysid)
@@ -261,46 +500,43 @@ def extract(rec: Recording, cfg: Config, profile: str | None = None) -> FlightDa
     cur = np.asarray(ds["current_distance"], float)
     ok = (cur >= np.asarray(ds["min_distance"], float)) & (cur <= np.asarray(ds["max_distance"], float))
     rt, rr = _sorted_unique(np.asarray(ds["time_boot_ms"], float) * 1e-3, np.where(ok, cur * 0.01, np.nan))
-    range_m = _interp(tb, rt[np.isfinite(rr)], rr[np.isfinite(rr)], 0.25)
-    # a reading next to an invalid one is not trusted either
-    near = _nearest(tb, rt, 0.25)
+    range_m = _interp_gapped(tb, rt[np.isfinite(rr)], rr[np.isfinite(rr)], bridge)
+    # a frame whose nearest reading is an invalid one is not trusted either
+    near = _nearest(tb, rt, bridge)
     range_m[(near < 0) | ~np.isfinite(rr[np.maximum(near, 0)])] = np.nan
 
-    # attitude estimate
-    at = _from_vehicle(rec.tables["ATTITUDE"], sysid)
-    att_t, roll, pitch, yaw = _sorted_unique(np.asarray(at["time_boot_ms"], float) * 1e-3,
-                                             np.asarray(at["roll"], float), np.asarray(at["pitch"], float),
-                                             np.unwrap(np.asarray(at["yaw"], float)))
-    roll_k = _interp(tb, att_t, roll, 1.5 * T)
-    pitch_k = _interp(tb, att_t, pitch, 1.5 * T)
-    yaw_k = _interp(tb, att_t, yaw, 1.5 * T)
-
     # command active over [t_k, t_k+1]
-    roll_u = np.full(len(tb), np.nan)
-    pitch_u = np.full(len(tb), np.nan)
     sat = rec.tables.get("SET_ATTITUDE_TARGET")
     if sat is not None and len(sat) and np.any(sat.compid == COMPANION_COMPONENT):
         sat = sat.select(sat.compid == COMPANION_COMPONENT)
         ct, q = _sorted_unique(np.asarray(sat["time_boot_ms"], float) * 1e-3, np.asarray(sat["q"], float))
         cr, cp, _ = quaternion_to_euler(q)
-        j = _nearest(tb, ct, 0.4 * T)  # the command computed from frame k carries frame k's time
-        has = j >= 0
-        # it acts from frame k+1: frame k's active command is the one computed at frame k-1
-        roll_u[1:] = np.where(has[:-1], cr[np.maximum(j[:-1], 0)], np.nan)
-        pitch_u[1:] = np.where(has[:-1], cp[np.maximum(j[:-1], 0)], np.nan)
+        # the command computed from frame k carries frame k's time and acts from frame k+1
+        j = _nearest(tb, ct, 0.4 * T)
+        rec_k = j >= 0
+        ck_r = np.where(rec_k, cr[np.maximum(j, 0)], np.nan)
+        ck_p = np.where(rec_k, cp[np.maximum(j, 0)], np.nan)
+        if np.count_nonzero(rec_k) >= 2:  # a lost command: between its neighbours
+            ck_r = np.where(rec_k, ck_r, _interp_gapped(tb, tb[rec_k], ck_r[rec_k], bridge))
+            ck_p = np.where(rec_k, ck_p, _interp_gapped(tb, tb[rec_k], ck_p[rec_k], bridge))
+        roll_u = np.full(n, np.nan)
+        pitch_u = np.full(n, np.nan)
+        roll_u[1:], pitch_u[1:] = ck_r[:-1], ck_p[:-1]
+        cmd_rec = np.zeros(n, dtype=bool)
+        cmd_rec[1:] = rec_k[:-1]
         source = "SET_ATTITUDE_TARGET (companion), active from the next frame"
     else:
         atg = _from_vehicle(rec.tables["ATTITUDE_TARGET"], sysid)
         ct, q = _sorted_unique(np.asarray(atg["time_boot_ms"], float) * 1e-3, np.asarray(atg["q"], float))
         cr, cp, _ = quaternion_to_euler(q)
-        j = _nearest(tb, ct, 0.6 * T)
-        roll_u = np.where(j >= 0, cr[np.maximum(j, 0)], np.nan)
-        pitch_u = np.where(j >= 0, cp[np.maximum(j, 0)], np.nan)
+        roll_u = _interp_gapped(tb, ct, cr, bridge)
+        pitch_u = _interp_gapped(tb, ct, cp, bridge)
+        cmd_rec = _recorded(tb, ct, 0.6 * T)
         source = "ATTITUDE_TARGET (vehicle)"
 
     # velocity setpoint (informative)
-    vx_set = np.full(len(tb), np.nan)
-    vy_set = np.full(len(tb), np.nan)
+    vx_set = np.full(n, np.nan)
+    vy_set = np.full(n, np.nan)
     pt = rec.tables.get("POSITION_TARGET_LOCAL_NED")
     if pt is not None and len(pt):
         pt = pt.select(pt.compid == COMPANION_COMPONENT) if np.any(pt.compid == COMPANION_COMPONENT) else pt
@@ -312,8 +548,8 @@ def extract(rec: Recording, cfg: Config, profile: str | None = None) -> FlightDa
             vy_set = np.where(j >= 0, pvy[np.maximum(j, 0)], np.nan)
 
     # truth, for plots only
-    tvx = np.full(len(tb), np.nan)
-    tvy = np.full(len(tb), np.nan)
+    tvx = np.full(n, np.nan)
+    tvy = np.full(n, np.nan)
     lp = rec.tables.get("LOCAL_POSITION_NED")
     if lp is not None and len(lp):
         lp = _from_vehicle(lp, sysid)
@@ -326,40 +562,18 @@ def extract(rec: Recording, cfg: Config, profile: str | None = None) -> FlightDa
             tvx, tvy = c * vn + s * ve, -s * vn + c * ve
 
     t_report = tb + offset - t0
-    good = valid & np.isfinite(gyro_x) & np.isfinite(gyro_y) & np.isfinite(range_m) & (range_m > 0) \
-        & np.isfinite(roll_k) & np.isfinite(pitch_k) & np.isfinite(roll_u) & np.isfinite(pitch_u)
-    n_bad = int(np.count_nonzero(~good))
-    if n_bad:
-        notes.append(f"{n_bad} of {len(tb)} flow frames unusable (no command, invalid flow, range, gyro or "
-                     f"attitude at the frame)")
-    brk = np.ones(len(tb), dtype=bool)
-    brk[1:] = np.diff(tb) > 1.5 * T
-    seg_all = np.cumsum(brk | ~np.concatenate([[False], good[:-1]]))
-    data = FlightData(
+    # a frame the sensor itself marked invalid (quality 0) is not bridged: it splits the segment
+    invalid = np.zeros(n, dtype=bool)
+    invalid[pos] = ~valid_rec
+    dphi_x[invalid] = np.nan
+    dphi_y[invalid] = np.nan
+    seg = np.cumsum(brk) - 1
+    return FlightData(
         path=str(rec.path), profile=prof.value, profile_reason=reason, frame_s=T, command_source=source,
-        t_s=t_report, dt_s=dt, seg=seg_all, dphi_x_rad=dphi_x, dphi_y_rad=dphi_y, gyro_x_rad_s=gyro_x,
+        t_s=t_report, dt_s=dt, seg=seg, dphi_x_rad=dphi_x, dphi_y_rad=dphi_y, gyro_x_rad_s=gyro_x,
         gyro_y_rad_s=gyro_y, range_m=range_m, roll_rad=roll_k, pitch_rad=pitch_k, yaw_rad=yaw_k,
         roll_cmd_rad=roll_u, pitch_cmd_rad=pitch_u, vx_set_m_s=vx_set, vy_set_m_s=vy_set,
         truth_vx_m_s=tvx, truth_vy_m_s=tvy, notes=notes,
         gyro_resolution_rad_s=(1e-3 if scale == 1e-3 else 0.0) / np.sqrt(12.0),
-        flow_resolution_rad=(cfg.flow_sensor.q_rad_per_count if prof is Profile.PAPER else 0.0) / np.sqrt(12.0))
-    data = data.take(good)
-    # keep segments long enough to fit over
-    keep = np.zeros(data.n, dtype=bool)
-    for a, b in data.segments():
-        if data.t_s[b - 1] - data.t_s[a] >= MIN_SEGMENT_S:
-            keep[a:b] = True
-    if not np.any(keep):
-        raise RecordingError(f"{name}: no stretch of {MIN_SEGMENT_S:.0f} s with flow, gyro, range, attitude and "
-                             f"a commanded attitude all valid")
-    if not np.all(keep):
-        data.notes.append(f"{int(np.count_nonzero(~keep))} frames in stretches shorter than {MIN_SEGMENT_S:.0f} s "
-                          f"left out")
-        data = data.take(keep)
-    # the first frame of each segment has no previous frame: its increment is not trusted
-    first = np.ones(data.n, dtype=bool)
-    first[1:] = np.diff(data.seg) != 0
-    data.dphi_x_rad[first] = 0.0
-    data.dphi_y_rad[first] = 0.0
-    data.dt_s[first] = T
-    return data
+        flow_resolution_rad=(cfg.flow_sensor.q_rad_per_count if prof is Profile.PAPER else 0.0) / np.sqrt(12.0),
+        flow_rec=flow_rec, att_rec=att_rec, gyro_rec=gyro_rec, cmd_rec=cmd_rec)

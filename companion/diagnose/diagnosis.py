@@ -28,6 +28,8 @@ from companion.diagnose.sparse import SparseFit, Term, sparse_fit
 from companion.recording import Recording
 from companion.report import Finding, Fit, Report, Unexplained, Window
 
+#: an unexplained residual this many times its channel's noise means the model does not fit
+MISFIT_TIMES_NOISE = 3.0
 #: a sparse model must predict at least this fraction of a residual's held-out sum of squares, and
 #: what it predicts must be larger than the channel's resolution, to be reported as unexplained
 SPARSE_MIN_R2 = 0.2
@@ -118,12 +120,15 @@ def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp
         u = ap.delayed_command(float(p[2]))
         yd = grad(y)
         ydd = grad(yd)
+        ud = grad(u)
         o = 1 - c
+        rows = ap.rows
+        y, u, yd, ydd, ud = y[:, rows], u[:, rows], yd[:, rows], ydd[:, rows], ud[:, rows]
         return [Term("tracking error", "command minus attitude: a gain error of the loop", "rad", u[c] - y[c]),
                 Term("attitude rate", "damping different from zeta", "rad/s", yd[c]),
                 Term("angular acceleration", "inertia or a lag in the loop", "rad/s^2", ydd[c]),
                 Term("command", "a command scale (DC gain) error", "rad", u[c]),
-                Term("command rate", "feed-forward or input shaping", "rad/s", grad(u)[c]),
+                Term("command rate", "feed-forward or input shaping", "rad/s", ud[c]),
                 Term("cubic tracking error", "a saturating or rate-limited loop", "rad^3", (u[c] - y[c]) ** 3),
                 Term("rate |rate|", "a rate-dependent (aerodynamic) damping", "rad^2/s^2", yd[c] * np.abs(yd[c])),
                 Term("other-axis attitude", "roll-pitch coupling", "rad", y[o]),
@@ -238,7 +243,9 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
         for e, comp in res.evidence.items():
             report.findings.append(_finding(e, comp, res, data, cfg, cond))
         _unexplained(name, res, data, ap, gp, fp, settings, report)
+        report.notes.extend(res.selector.notes)
     report.findings.sort(key=lambda f: (not f.significant, -(f.fit.improvement_pct if f.fit else 0.0)))
+    report.headline = headline(report)
     timings["report_s"] = time.perf_counter() - t
     return Diagnosis(data, cfg, report, results, ap, gp, fp, fstate, timings)
 
@@ -323,8 +330,29 @@ def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProb
                       and math.sqrt(sp.r2_heldout) * rms > g.floors[c])
         best_text = sp.describe(g.units[c]) if (sp is not None and structured) else None
         if structured and not windows:
-            report.unexplained.append(Unexplained(ch, float(tt.min()), float(tt.max()), rms, best_text))
+            report.unexplained.append(Unexplained(ch, float(tt.min()), float(tt.max()), rms, best_text, sigma))
         for iv in windows:
             report.unexplained.append(Unexplained(ch, iv.start_s, iv.end_s, iv.rms,
-                                                  best_text or "no candidate term fits (a local disturbance)"))
+                                                  best_text or "no candidate term fits (a local disturbance)", sigma))
+
+
+def headline(report: Report) -> str:
+    """The first line of a report, in plain words: what differs, or that the model does not fit
+    where no named effect explains a residual far above its channel's noise, or that it fits."""
+    found = report.significant()
+    misfit = sorted((u for u in report.unexplained if u.times_noise >= MISFIT_TIMES_NOISE),
+                    key=lambda u: -u.times_noise)
+    parts = []
+    if found:
+        parts.append(f"the model leaves out {', '.join(f.effect for f in found)}")
+    if misfit:
+        u = misfit[0]
+        more = f" (and {len(misfit) - 1} more stretch(es))" if len(misfit) > 1 else ""
+        parts.append(f"{'it still' if found else 'the model'} does not fit {u.channel} from {u.start_s:.1f} to "
+                     f"{u.end_s:.1f} s: residual {u.times_noise:.0f} x its noise, which no named effect "
+                     f"explains{more}")
+    if not parts:
+        return "the recording fits the nominal model within its noise: no effect it leaves out earns its parameters"
+    text = "; ".join(parts)
+    return text[0].upper() + text[1:]
 

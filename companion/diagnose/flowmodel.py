@@ -49,6 +49,25 @@ NOMINAL = np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 IDX = {p: i for i, p in enumerate(PARAMS)}
 
 
+#: flow windows with more bridged (lost) frames than this share, or a run of bridged frames longer
+#: than ``BRIDGED_RUN_MAX`` frames, are left out of the flow and force channels
+BRIDGED_SHARE_MAX = 0.25
+BRIDGED_RUN_MAX = 3
+
+
+def _long_runs(missing: np.ndarray, max_len: int) -> np.ndarray:
+    """Frames in runs of True longer than ``max_len``."""
+    out = np.zeros(len(missing), dtype=bool)
+    if not np.any(missing):
+        return out
+    x = np.concatenate([[False], missing, [False]]).astype(int)
+    d = np.diff(x)
+    for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True):
+        if b - a > max_len:
+            out[a:b] = True
+    return out
+
+
 def _cumtrapz(y: np.ndarray, t: np.ndarray) -> np.ndarray:
     out = np.zeros_like(y)
     out[1:] = np.cumsum(0.5 * (y[1:] + y[:-1]) * np.diff(t))
@@ -149,6 +168,12 @@ class FlowProblem:
             if len(bounds) >= 2:
                 force_w.append(np.stack([bounds[:-1], bounds[1:]], axis=1))
         fwin = np.concatenate(flow_w) if flow_w else np.zeros((0, self.L1), int)
+        # windows over lost flow frames: a few isolated ones are bridged well (rotation from the
+        # attitude, translation interpolated); a window with a long run or many is left out
+        long_gap = _long_runs(~data.flow_rec, BRIDGED_RUN_MAX)
+        if len(fwin):
+            bridged = (~data.flow_rec)[fwin]
+            fwin = fwin[(bridged.mean(axis=1) <= BRIDGED_SHARE_MAX) & ~long_gap[fwin].any(axis=1)]
         if len(fwin) > max_flow_windows:  # a long recording: evenly spread windows are plenty
             fwin = fwin[np.unique(np.linspace(0, len(fwin) - 1, max_flow_windows).round().astype(int))]
         self.flow = Windows(fwin, np.zeros(0), np.zeros(0))
@@ -160,6 +185,9 @@ class FlowProblem:
             self.flow.t_start_s = t[self.flow.idx[:, 0]]
             self.flow.t_end_s = t[self.flow.idx[:, -1]]
         fw = np.concatenate(force_w) if force_w else np.zeros((0, 2), int)
+        if len(fw) and np.any(long_gap):
+            cg = np.concatenate([[0], np.cumsum(long_gap)])
+            fw = fw[cg[fw[:, 1] + self.h + 1] - cg[fw[:, 0] - self.h] == 0]
         self.force = Windows(fw, t[fw[:, 0]] if len(fw) else np.zeros(0), t[fw[:, 1]] if len(fw) else np.zeros(0))
         # projector removing a cubic in time from each flow window (same for every window)
         tau = np.linspace(-1.0, 1.0, self.L1)

@@ -30,20 +30,57 @@ from companion.diagnose.wind import WindWindow, kernel_regressor, locate, null_p
 AROUND_WINDOW_S = 5.0
 
 
+#: frames after a gap of lost commands whose attitude residual is not used: the simulation restarts
+#: there from the recorded attitude, with a rate from two frames (s)
+AFTER_COMMAND_GAP_S = 0.1
+#: frames after a single lost (interpolated) command whose attitude residual is not used
+COMMAND_SETTLE_FRAMES = 3
+
+
+def _runs(missing: np.ndarray, min_len: int) -> list[tuple[int, int]]:
+    """(start, stop) of the runs of True in ``missing`` at least ``min_len`` long."""
+    if not np.any(missing):
+        return []
+    x = np.concatenate([[False], missing, [False]]).astype(int)
+    d = np.diff(x)
+    starts, stops = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+    return [(int(a), int(b)) for a, b in zip(starts, stops, strict=True) if b - a >= min_len]
+
+
+def attitude_rows(data: FlightData) -> np.ndarray:
+    """Frames whose attitude residual is used: the attitude was recorded there, and the
+    simulation is not just coming out of a gap of lost commands (``AFTER_COMMAND_GAP_S``)."""
+    rows = data.att_rec.copy()
+    t = data.t_s
+    # a single lost command is bridged by interpolation; the attitude's response to its error
+    # has faded after a few frames
+    lost = np.flatnonzero(~data.cmd_rec)
+    for k in range(COMMAND_SETTLE_FRAMES):
+        rows[np.minimum(lost + k, data.n - 1)] = False
+    for a, b in _runs(~data.cmd_rec, 2):
+        rows &= ~((t >= t[a]) & (t <= t[b - 1] + AFTER_COMMAND_GAP_S))
+    return rows
+
+
 def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProblem]:
     ap = AttitudeProblem(data)
     wp, z = cfg.airframe.omega_p_rad_s, cfg.airframe.zeta
     T = data.frame_s
+    rows = attitude_rows(data)
+    if not np.any(rows):
+        rows = np.ones(data.n, dtype=bool)
+    ap.rows = rows
 
     def residuals(p: np.ndarray) -> list[np.ndarray]:
-        e = ap.residual(float(p[0]), float(p[1]), float(p[2]))
-        return [e[0], e[1]]
+        e = ap.residual(float(p[0]), float(p[1]), float(p[2]), fit_mask=rows)
+        return [e[0][rows], e[1][rows]]
 
+    tr = data.t_s[rows]
     g = Group(
         name="attitude", params=("omega_p", "zeta", "delay"), nominal=np.array([wp, z, 0.0]),
         steps=np.array([0.005 * wp, 0.005, 0.0005]), lower=np.array([0.3, 0.05, -T]),
         upper=np.array([80.0, 5.0, 0.25]), channels=("attitude_roll", "attitude_pitch"), units=("rad", "rad"),
-        floors=(1e-4, 1e-4), residuals=residuals, row_times=[data.t_s, data.t_s],
+        floors=(1e-4, 1e-4), residuals=residuals, row_times=[tr, tr],
         candidates=[Candidate("attitude_dynamics", ("omega_p", "zeta"),
                               matters=threshold("attitude_dynamics", {"omega_p": wp, "zeta": z})),
                     Candidate("attitude_delay", ("delay",), matters=threshold("attitude_delay"))])
@@ -51,27 +88,41 @@ def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProble
 
 
 class GyroProblem:
-    """Gyro against the attitude, frame by frame in integrated form (the paper's per-axis
-    kinematics, angle' = rate): the attitude change over each frame divided by its length, minus
-    the trapezoidal mean of the gyro at the frame's two ends. The command changes at the frames,
-    so within a frame the rate is smooth and the trapezoid is exact to (T^2/12) rate'', far below
-    a gyro's resolution; a derivative of the attitude would not be (its second derivative jumps
-    at every frame). Rows: every frame but the first of each segment, at the frame's midpoint."""
+    """Gyro against the attitude in integrated form (the paper's per-axis kinematics,
+    angle' = rate): over each interval between two frames where the attitude was recorded, the
+    attitude change divided by the interval, minus the trapezoidal mean of the gyro over it.
+    The command changes at the frames, so within a frame the rate is smooth and the trapezoid is
+    exact to (T^2/12) rate'', far below a gyro's resolution; a derivative of the attitude would
+    not be (its second derivative jumps at every frame). With the attitude at every frame the
+    intervals are the frames; where it was lost or is logged slower, they span several frames
+    (at most ``MAX_SPAN_FRAMES``). Rows at the intervals' midpoints."""
+
+    MAX_SPAN_FRAMES = 10
 
     def __init__(self, data: FlightData) -> None:
-        rows = np.ones(data.n, dtype=bool)
-        for a, _b in data.segments():
-            rows[a] = False
-        k = np.flatnonzero(rows)
-        self.k = k
         t = data.t_s
-        dt = t[k] - t[k - 1]
-        self.t_s = 0.5 * (t[k] + t[k - 1])
+        seg = data.seg
+        have = np.flatnonzero(data.att_rec)
+        if len(have) < 2:
+            have = np.arange(data.n)
+        a, b = have[:-1], have[1:]
+        ok = (seg[a] == seg[b]) & (b - a <= self.MAX_SPAN_FRAMES)
+        if np.mean(data.gyro_rec) >= 0.75:  # a gyro at the frame rate: its lost samples are not guessed at
+            ok &= data.gyro_rec[a] & data.gyro_rec[b]
+        a, b = a[ok], b[ok]
+        self.k = b
+        self.k_prev = a
+        dt = t[b] - t[a]
+        self.t_s = 0.5 * (t[b] + t[a])
         ang = np.stack([data.roll_rad, data.pitch_rad])
         gyr = np.stack([data.gyro_x_rad_s, data.gyro_y_rad_s])
-        self.rate = (ang[:, k] - ang[:, k - 1]) / dt  # mean body rate over the frame from the attitude
-        self.gyro = 0.5 * (gyr[:, k] + gyr[:, k - 1])
-        self.angle = 0.5 * (ang[:, k] + ang[:, k - 1])
+        cg = np.zeros_like(gyr)
+        inc = 0.5 * (gyr[:, 1:] + gyr[:, :-1]) * np.diff(t)
+        inc[:, np.diff(seg) != 0] = 0.0
+        cg[:, 1:] = np.cumsum(inc, axis=1)
+        self.rate = (ang[:, b] - ang[:, a]) / dt  # mean body rate over the interval from the attitude
+        self.gyro = (cg[:, b] - cg[:, a]) / dt
+        self.angle = 0.5 * (ang[:, b] + ang[:, a])
         self.r = self.gyro - self.rate
 
 

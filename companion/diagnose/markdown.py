@@ -110,7 +110,7 @@ def plot_models(diag: Diagnosis, path: Path) -> Path:
     for i, (name, ang) in enumerate((("pitch", d.pitch_rad), ("roll", d.roll_rad))):
         ax = axes[0, i]
         k = 1 if name == "pitch" else 0
-        a, b = _zoom(d.t_s, att.r_nominal[k], 10.0)
+        a, b = _zoom(att.group.row_times[k], att.r_nominal[k], 10.0)
         m = (d.t_s >= a) & (d.t_s <= b)
         ax.step(d.t_s[m], np.degrees(d.pitch_cmd_rad if name == "pitch" else d.roll_cmd_rad)[m], where="post",
                 color="tab:orange", lw=0.8, label="command (active)")
