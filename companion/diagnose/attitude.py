@@ -149,6 +149,8 @@ class AttitudeProblem:
         """Recorded minus simulated attitude (2, n), rad, with each axis' constant offset removed
         (the offset estimated on ``fit_mask`` frames, all frames by default)."""
         e = self.y - self.simulate(omega_p, zeta, delay_s)
-        if fit_mask is None:
-            return e - np.nanmean(e, axis=1, keepdims=True)
-        return e - np.nanmean(e[:, fit_mask], axis=1, keepdims=True)
+        sub = e if fit_mask is None else e[:, fit_mask]
+        ok = np.isfinite(sub)
+        n = ok.sum(axis=1, keepdims=True)
+        mean = np.where(ok, sub, 0.0).sum(axis=1, keepdims=True) / np.maximum(n, 1)
+        return e - mean

@@ -161,15 +161,26 @@ class FlowGroupState:
         s, e = self.start_end
         w = self.window
         W = self.fp.force.idx
+        start_sd = w.start_sd if w else math.nan
+        end_sd = w.end_sd if w else math.nan
         if w is not None and len(W):
             t = self.fp.t
-            tol = (self.fp.h + 1) * self.fp.data.frame_s
+            fp = self.fp
+            tol = (fp.h + 1) * fp.data.frame_s
+            segs = fp.data.segments()
+            first = segs[0][0] + fp.h + fp.L2  # the first and last boundaries a flight can have
+            last = segs[-1][1] - 1 - fp.h - fp.L2
             if s <= t[W[0, 0]] + tol:
-                s = float(t[0])
+                if W[0, 0] <= first:
+                    s = float(t[0])
+                else:  # no force window before this one (lost telemetry): the onset is not seen
+                    start_sd = max(start_sd, 0.5 * (t[W[0, 0]] - t[0]))
             if e >= t[W[-1, 1]] - tol:
-                e = float(t[-1])
-        return {"start_s": s, "end_s": e, "start_sd": w.start_sd if w else math.nan,
-                "end_sd": w.end_sd if w else math.nan}
+                if W[-1, 1] >= last - fp.L2:
+                    e = float(t[-1])
+                else:
+                    end_sd = max(end_sd, 0.5 * (t[-1] - t[W[-1, 1]]))
+        return {"start_s": s, "end_s": e, "start_sd": start_sd, "end_sd": end_sd}
 
     def search(self, p: np.ndarray, masks: list[np.ndarray] | None) -> list[np.ndarray]:
         """Locate the wind window on the rows of ``masks`` from the force residual at p without
