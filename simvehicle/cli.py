@@ -18,7 +18,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("name", choices=["step", "gust", "slow", "rail", "triangle"])
     sc.add_argument("--config", help="parameter set (TOML); default configs/paper.toml")
     sc.add_argument("--profile", choices=["paper", "ardupilot", "px4"], default="paper",
-                    help="sensor message convention of the recording (closed-loop scenarios)")
+                    help="sensor message convention of the recording (default paper)")
     sc.add_argument("--seed", type=int, default=0, help="seed of the noise generator")
     sc.add_argument("--tlog", help="write the run as a MAVLink recording")
     sc.add_argument("--plot", help="write the paper's figure for the run (PNG)")

@@ -7,6 +7,8 @@ Closed loop (both axes at once, the same profile on x and y):
 Open loop, the flow sensor moved on a rail with no rotation:
 - ``rail``: constant 0.05, 0.1, 0.2, 0.3 m/s at 0.66 m (Table V, Fig. 5-6);
 - ``triangle``: back-and-forth at 17 cm and 62.5 cm, sampled at 25 Hz (Fig. 9).
+Their recordings (``--tlog``) hold what the sensor produced: the runs one after the other on one
+clock, each introduced by a STATUSTEXT, with the slider's position as LOCAL_POSITION_NED.
 
 A closed-loop run pushes every vehicle message through MAVLink encoding and decoding and feeds
 the companion's ``MessageRouter``, so the scenario, the live loop and replay of its recording
@@ -32,7 +34,7 @@ from companion.profiles import Profile
 from companion.tlog_writer import TlogWriter
 from simvehicle import telemetry
 from simvehicle.flow_sensor import flow_frame
-from simvehicle.sim import Simulator, Turbulence
+from simvehicle.sim import FrameSample, Simulator, Turbulence
 
 #: UNIX time of scenario time 0 in recordings (2026-01-01T00:00:00Z): headers = TLOG_EPOCH_S + t
 TLOG_EPOCH_S = 1_767_225_600.0
@@ -194,6 +196,63 @@ def _open_loop_counts(position_m: Callable[[float], float], altitude_m: float, d
         counts[k] = dx
     return t, counts
 
+@dataclass
+class OpenLoopRun:
+    """One open-loop run for the recording: the slider's position, the sensor's height, its
+    frame times and the counts it produced, and the line that introduces it (STATUSTEXT)."""
+
+    label: str
+    position_m: Callable[[float], float]
+    altitude_m: float
+    t_s: np.ndarray
+    counts: np.ndarray
+
+
+def _slider_velocity(position_m: Callable[[float], float], t_s: float, frame_s: float) -> float:
+    """The slider's mean velocity over the frame ending at ``t_s`` (what the counts measure)."""
+    return (position_m(t_s) - position_m(max(t_s - frame_s, 0.0))) / frame_s if t_s > 0 else 0.0
+
+
+def _record_open_loop(path: str | Path, runs: list[OpenLoopRun], frame_s: float, q_rad_per_count: float,
+                      profile: Profile, cfg: Config) -> None:
+    """Record open-loop runs as the sensor produced them (CONVENTIONS.md, "Scenario run"): one
+    after the other on one clock, each introduced by a STATUSTEXT; per frame RAW_IMU (no
+    rotation: zero rates), DISTANCE_SENSOR (the height), the flow message in ``profile``,
+    ATTITUDE (level) and LOCAL_POSITION_NED (the slider: x along the rail, the truth); a
+    disarmed HEARTBEAT each second. Time fields are scenario time; headers TLOG_EPOCH_S + t."""
+    veh = mav.MAVLink(None, srcSystem=VEHICLE_SYSID, srcComponent=1)
+    rf = cfg.rangefinder
+    writer = _open_tlog(path)
+    assert writer is not None
+    per_s = int(round(1.0 / frame_s))
+    offset = 0.0
+    try:
+        for run in runs:
+            _emit(writer, _info_text(veh, run.label), veh, TLOG_EPOCH_S + offset)
+            for k, (t_run, dx) in enumerate(zip(run.t_s, run.counts, strict=True)):
+                t = offset + float(t_run)
+                stamp = TLOG_EPOCH_S + t
+                if k % per_s == 0:
+                    _emit(writer, telemetry.heartbeat(veh, armed=False, custom_mode=0), veh, stamp)
+                x = run.position_m(float(t_run)) - run.position_m(0.0)
+                s = FrameSample(frame=k, t_s=t, flow_x_counts=int(dx), flow_y_counts=0, flow_quality=255,
+                                gyro_x_rad_s=0.0, gyro_y_rad_s=0.0, gyro_z_rad_s=0.0, range_m=run.altitude_m,
+                                roll_rad=0.0, pitch_rad=0.0, roll_rate_rad_s=0.0, pitch_rate_rad_s=0.0,
+                                vx_m_s=_slider_velocity(run.position_m, float(t_run), frame_s), vy_m_s=0.0,
+                                x_m=x, y_m=0.0, altitude_m=run.altitude_m, phi_x_rad=-x / run.altitude_m,
+                                phi_y_rad=0.0, force_x_n=0.0, force_y_n=0.0, roll_cmd_active_rad=0.0,
+                                pitch_cmd_active_rad=0.0)
+                for m in telemetry.frame_messages(veh, s, profile, q_rad_per_count, frame_s, rf.min_m, rf.max_m):
+                    _emit(writer, m, veh, stamp)
+            offset += float(run.t_s[-1]) + frame_s  # the next run starts one frame later
+    finally:
+        writer.close()
+
+
+def _info_text(enc: Any, text: str) -> Any:
+    """A STATUSTEXT (INFO) naming what follows in a recording."""
+    return enc.statustext_encode(mav.MAV_SEVERITY_INFO, text.encode("ascii", "replace")[:50])
+
 
 def rail_position(speed_m_s: float, still_s: float = 2.0) -> tuple[Callable[[float], float], float]:
     """The rail's slider: still, then at ``-speed`` (the rail ran in the negative direction) over
@@ -206,14 +265,19 @@ def rail_position(speed_m_s: float, still_s: float = 2.0) -> tuple[Callable[[flo
     return x, still_s + move_s + still_s
 
 
-def run_rail(cfg: Config) -> Run:
-    """The four constant-speed rail runs of Table V at 0.66 m with Q = 0.0015 rad/count."""
+def run_rail(cfg: Config, *, tlog: str | Path | None = None, profile: Profile = Profile.PAPER) -> Run:
+    """The four constant-speed rail runs of Table V at 0.66 m with Q = 0.0015 rad/count.
+    ``tlog``: record what the sensor produced, the four runs one after the other (``profile``:
+    the flow message's convention)."""
     T = cfg.flow_sensor.frame_period_s
     cols: dict[str, np.ndarray] = {}
     rows = []
+    recorded: list[OpenLoopRun] = []
     for v in RAIL_SPEEDS_M_S:
         pos, dur = rail_position(v)
         t, c = _open_loop_counts(pos, RAIL_ALTITUDE_M, dur, T, RAIL_Q_RAD_PER_COUNT)
+        recorded.append(OpenLoopRun(f"rail {v:g} m/s at {RAIL_ALTITUDE_M:g} m, Q {RAIL_Q_RAD_PER_COUNT:g}",
+                                    pos, RAIL_ALTITUDE_M, t, c))
         cols[f"t_s_{v}"], cols[f"counts_{v}"] = t, c.astype(float)
         moving = (t > 2.0 + T) & (t <= dur - 2.0)
         rate = float(c[moving].sum() / (moving.sum() * T))
@@ -225,7 +289,9 @@ def run_rail(cfg: Config) -> Run:
                      "distance_from_counts_m": total * RAIL_Q_RAD_PER_COUNT * RAIL_ALTITUDE_M,
                      "travel_m": RAIL_TRAVEL_M,
                      "travel_in_counts": RAIL_TRAVEL_M / (RAIL_Q_RAD_PER_COUNT * RAIL_ALTITUDE_M)})
-    return Run("rail", cols, meta={"rows": rows})
+    if tlog is not None:
+        _record_open_loop(tlog, recorded, T, RAIL_Q_RAD_PER_COUNT, profile, cfg)
+    return Run("rail", cols, Path(tlog) if tlog else None, meta={"rows": rows, "profile": profile.value})
 
 
 def triangle_position(speed_m_s: float, leg_s: float) -> Callable[[float], float]:
@@ -238,15 +304,18 @@ def triangle_position(speed_m_s: float, leg_s: float) -> Callable[[float], float
     return x
 
 
-def run_triangle(cfg: Config) -> Run:
-    """Fig. 9: triangular motion at 0.2 m/s sampled at 25 Hz at 17 cm and 62.5 cm, Q = 0.0015."""
-    del cfg
+def run_triangle(cfg: Config, *, tlog: str | Path | None = None, profile: Profile = Profile.PAPER) -> Run:
+    """Fig. 9: triangular motion at 0.2 m/s sampled at 25 Hz at 17 cm and 62.5 cm, Q = 0.0015.
+    ``tlog``: record what the sensor produced (25 Hz frames), both heights one after the other."""
     frame_s = 1.0 / TRIANGLE_RATE_HZ
     cols: dict[str, np.ndarray] = {}
     rows = []
+    recorded: list[OpenLoopRun] = []
     for alt in TRIANGLE_ALTITUDES_M:
-        t, c = _open_loop_counts(triangle_position(TRIANGLE_SPEED_M_S, TRIANGLE_LEG_S), alt, 6 * TRIANGLE_LEG_S,
-                                 frame_s, RAIL_Q_RAD_PER_COUNT)
+        pos = triangle_position(TRIANGLE_SPEED_M_S, TRIANGLE_LEG_S)
+        t, c = _open_loop_counts(pos, alt, 6 * TRIANGLE_LEG_S, frame_s, RAIL_Q_RAD_PER_COUNT)
+        recorded.append(OpenLoopRun(f"triangle {TRIANGLE_SPEED_M_S:g} m/s at {alt:g} m, "
+                                    f"{TRIANGLE_RATE_HZ:g} Hz, Q {RAIL_Q_RAD_PER_COUNT:g}", pos, alt, t, c))
         cols[f"t_s_{alt}"], cols[f"counts_{alt}"] = t, c.astype(float)
         mag = np.abs(c[1:])
         # frames wholly inside a leg (a reversal splits its frame's motion)
@@ -256,7 +325,9 @@ def run_triangle(cfg: Config) -> Run:
         rows.append({"altitude_m": alt, "counts_per_sample": float(mag[inside].mean()),
                      "expected_counts_per_sample": expected,
                      "mrad_per_sample": 1e3 * TRIANGLE_SPEED_M_S * frame_s / alt})
-    return Run("triangle", cols, meta={"rows": rows})
+    if tlog is not None:
+        _record_open_loop(tlog, recorded, frame_s, RAIL_Q_RAD_PER_COUNT, profile, cfg)
+    return Run("triangle", cols, Path(tlog) if tlog else None, meta={"rows": rows, "profile": profile.value})
 
 
 # ---------------------------------------------------------------------------------------------
@@ -311,9 +382,9 @@ def figures(run: Run, cfg: Config) -> dict[str, Any]:
 def run_named(name: str, cfg: Config, *, profile: Profile = Profile.PAPER, seed: int = 0,
               tlog: str | Path | None = None) -> Run:
     if name == "rail":
-        return run_rail(cfg)
+        return run_rail(cfg, tlog=tlog, profile=profile)
     if name == "triangle":
-        return run_triangle(cfg)
+        return run_triangle(cfg, tlog=tlog, profile=profile)
     if name not in SCENARIOS:
         raise KeyError(name)
     return fly(cfg, SCENARIOS[name], profile=profile, seed=seed, tlog=tlog)
