@@ -86,6 +86,8 @@ class AttitudeProblem:
         self.y = np.stack([data.roll_rad, data.pitch_rad])
         #: frames whose residual the attitude channel uses (``groups.attitude_rows``)
         self.rows = np.ones(data.n, dtype=bool)
+        #: the fitted (omega_p, zeta, delay), once the attitude group is chosen (``diagnosis``)
+        self.final_p: np.ndarray | None = None
         # the simulation restarts from the recorded attitude after a run of lost commands (it
         # would otherwise carry the bridged commands' error for a settling time)
         self.segments = []

@@ -134,7 +134,14 @@ def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp
                 Term("other-axis attitude", "roll-pitch coupling", "rad", y[o]),
                 Term("other-axis rate", "gyroscopic or mixer coupling", "rad/s", yd[o])]
     if name == "gyro":
+        # regressors from the attitude the fitted loop gives for the recorded commands, not from the
+        # recorded attitude: differentiated, the recorded attitude's own noise would sit in both the
+        # residual and the regressor and read as a gyro scale error (errors in variables)
         r = gp.rate
+        if ap.final_p is not None:
+            y = ap.simulate(*(float(x) for x in ap.final_p))
+            if np.all(np.isfinite(y[:, gp.k])) and np.all(np.isfinite(y[:, gp.k_prev])):
+                r = (y[:, gp.k] - y[:, gp.k_prev]) / (t[gp.k] - t[gp.k_prev])
         rd = np.gradient(r, gp.t_s, axis=1) if r.shape[1] > 1 else np.zeros_like(r)
         o = 1 - c
         return [Term("attitude rate", "a gyro scale-factor error", "rad/s", r[c]),
@@ -227,6 +234,7 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
         t = time.perf_counter()
         results[g.name] = _fit_group(g, settings, t0)
         timings[f"{g.name}_s"] = time.perf_counter() - t
+    ap.final_p = results["attitude"].final.p
     if "wind_force" in results["flow"].chosen:
         results["flow"].selector._search(results["flow"].final.p, None)
     t = time.perf_counter()

@@ -736,34 +736,8 @@ class Selector:
             self._search(p, None)
         elif self.widx:
             self._search(self.p_lin, None)
-        cov = self._cov(free, p, p_folds, full_sse)
-        self._halves_floor(cov, p, [i for i in free if i not in self.widx])
-        return ModelScore(tuple(effects), free, p, p_folds, cov, fold_sse, ho,
+        return ModelScore(tuple(effects), free, p, p_folds, self._cov(free, p, p_folds, full_sse), fold_sse, ho,
                           full_sse, self.n_rows, state_full, fold_states, heldout_rows=rows)
-
-    def _halves_floor(self, cov: np.ndarray, p: np.ndarray, idx: list[int]) -> None:
-        """Floor the variances of global parameters ``idx`` by what the flight's two halves say:
-        (p_first - p_second)^2 / 4. Interleaved folds all see the same mix of manoeuvres, so their
-        spread misses how much a parameter moves with what the vehicle did; where the model is
-        only an approximation (a real attitude loop is not second order) the fitted value depends
-        on that, and the two halves of a flight, flown differently, show it."""
-        if not idx:
-            return
-        t_all = np.concatenate([t for t in self.g.row_times if len(t)]) if self.n_rows else np.zeros(0)
-        if len(t_all) < 4:
-            return
-        mid = float(np.median(t_all))
-        fits = []
-        for first in (True, False):
-            train = [(t <= mid) if first else (t > mid) for t in self.g.row_times]
-            fits.append(self._gauss_newton(p, idx, train, iterations=max(1, self.s.chord_iterations)))
-        d2 = (fits[0][idx] - fits[1][idx]) ** 2 / 4.0
-        for j, i in enumerate(idx):
-            if d2[j] > cov[i, i]:
-                scale = math.sqrt(d2[j] / cov[i, i]) if cov[i, i] > 0 else 0.0
-                cov[i, :] *= scale
-                cov[:, i] *= scale
-                cov[i, i] = d2[j]
 
 
 def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
