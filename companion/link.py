@@ -12,11 +12,16 @@ and a serial device with its baud rate: ``/dev/ttyUSB0,921600`` (``COM3,57600`` 
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io
 import os
 import re
+import socket
+import threading
 import time
 import types
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -66,8 +71,53 @@ def check_url(url: str) -> None:
                      "tcp:HOST:PORT or a serial device such as /dev/ttyUSB0,921600)")
 
 
+#: seconds a host name may take to resolve before ``open_connection`` gives up
+RESOLVE_TIMEOUT_S = 5.0
+#: seconds a TCP connection may take to be accepted
+TCP_CONNECT_TIMEOUT_S = 5.0
+
+
+def resolve_host(host: str, port: int, *, timeout_s: float = RESOLVE_TIMEOUT_S,
+                 resolver: Callable[..., Any] = socket.getaddrinfo) -> str:
+    """The IPv4 address of ``host`` (pymavlink's sockets are IPv4), or LinkError naming it: an
+    unknown host, a malformed address (``999.1.1.1``) or a resolver that does not answer within
+    ``timeout_s`` (the lookup runs in a thread, so a hung DNS cannot hang the caller)."""
+    result: dict[str, Any] = {}
+
+    def lookup() -> None:
+        try:
+            result["infos"] = resolver(host, port, socket.AF_INET, socket.SOCK_DGRAM)
+        except Exception as exc:  # noqa: BLE001 - reported below as one line
+            result["error"] = exc
+
+    worker = threading.Thread(target=lookup, name="resolve-host", daemon=True)
+    worker.start()
+    worker.join(timeout_s)
+    if worker.is_alive():
+        raise LinkError(f"host {host!r} did not resolve within {timeout_s:g} s")
+    if "error" in result:
+        exc = result["error"]
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise LinkError(f"unknown host {host!r} ({why})")
+    infos = result.get("infos") or []
+    if not infos:
+        raise LinkError(f"unknown host {host!r} (no IPv4 address)")
+    return str(infos[0][4][0])
+
+
+def _check_reachable(address: str, port: int) -> None:
+    """LinkError when the system has no route to ``address`` (a UDP connect sends nothing)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.connect((address, port))
+        except OSError as exc:
+            raise LinkError(f"cannot reach {address}:{port}: {exc.strerror or exc}") from None
+
+
 def open_connection(url: str, *, source_system: int, source_component: int) -> Any:
-    """Open a pymavlink connection (MAVLink 2, ardupilotmega dialect). LinkError if it fails."""
+    """Open a pymavlink connection (MAVLink 2, ardupilotmega dialect). LinkError (one line, no
+    output from pymavlink) if it fails: an unknown or unreachable host, a refused or unanswered
+    TCP connection, a serial device that cannot be opened."""
     check_url(url)
     kwargs: dict[str, Any] = {"source_system": source_system, "source_component": source_component,
                               "dialect": "ardupilotmega", "autoreconnect": False}
@@ -76,12 +126,44 @@ def open_connection(url: str, *, source_system: int, source_component: int) -> A
     if m:
         device = m.group("dev")
         kwargs["baud"] = int(m.group("baud") or 115200)
+    timeout: float | None = None
     try:
-        conn = mavutil.mavlink_connection(device, **kwargs)
-    except Exception as exc:  # noqa: BLE001 - socket, serial and resolver errors alike: one line
+        if url.startswith(_NET_PREFIXES):
+            kind, rest = url.split(":", 1)
+            host, port = parse_host_port(rest)
+            address = resolve_host(host, port)
+            if kind in ("udpout", "udpbcast", "tcp"):
+                _check_reachable(address, port)
+            if kind == "tcp":
+                kwargs["retries"] = 0  # one attempt, no "sleeping" lines from pymavlink's retries
+                timeout = TCP_CONNECT_TIMEOUT_S
+    except LinkError as exc:
         raise LinkError(f"cannot open {url}: {exc}") from None
+    previous = socket.getdefaulttimeout()
+    try:
+        socket.setdefaulttimeout(timeout)  # a TCP peer that never answers: give up after the timeout
+        with contextlib.redirect_stdout(io.StringIO()):  # pymavlink prints its connection errors
+            conn = mavutil.mavlink_connection(device, **kwargs)
+    except Exception as exc:  # noqa: BLE001 - socket, serial and resolver errors alike: one line
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else (str(exc) or type(exc).__name__)
+        raise LinkError(f"cannot open {url}: {why}") from None
+    finally:
+        socket.setdefaulttimeout(previous)
     conn.mav.robust_parsing = True
+    if isinstance(conn, mavutil.mavtcp):
+        # pymavlink prints "EOF on TCP socket" on every read once the peer has gone: note it instead
+        conn.handle_eof = lambda: _note_closed(conn, "closed by the other end")
+        conn.handle_disconnect = lambda: _note_closed(conn, "reset by the other end")
     return conn
+
+
+def _note_closed(conn: Any, why: str) -> None:
+    conn.flowhold_closed = why
+
+
+def closed_reason(conn: Any) -> str | None:
+    """Why a stream connection (TCP) has ended, or None while it is open (UDP never ends)."""
+    return getattr(conn, "flowhold_closed", None)
 
 
 def signing_key(text: str) -> bytes:

@@ -306,6 +306,7 @@ class LiveCompanion:
             now = self.clock()
             if now > deadline:
                 raise LinkError(f"no HEARTBEAT from a vehicle on {self.url} within {timeout_s:g} s")
+            self._check_open()
             self._heartbeat(now)
             msg = self._recv()
             if msg is None:
@@ -332,6 +333,12 @@ class LiveCompanion:
                 self.commander.add("arm", mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         else:
             self.out("flowhold: waiting for the pilot to arm in GUIDED_NOGPS")
+
+    def _check_open(self) -> None:
+        """LinkError when a stream link (TCP) has been closed by the other end."""
+        why = link.closed_reason(self.conn)
+        if why is not None:
+            raise LinkError(f"the connection {self.url} was {why}")
 
     def _next_message(self) -> Any | None:
         if not self._datagrams:
@@ -597,6 +604,7 @@ class LiveCompanion:
                 return
             msg = self._recv()
             if msg is None:
+                self._check_open()
                 self.conn.select(min(self.T / 2, 0.01))
                 continue
             try:
