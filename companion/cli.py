@@ -22,7 +22,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
 
 
 def _add_recording(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recording", help=".tlog, DataFlash .bin, PX4 .ulg, or CSV (with --sensor-config)")
+    p.add_argument("recording", help=".tlog, DataFlash .bin, PX4 .ulg, or CSV (with --sensor-config); "
+                                     "each also gzip-compressed (.gz)")
     p.add_argument("--sensor-config", help="column map (TOML in configs/sensors/) for a CSV recording")
 
 

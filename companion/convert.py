@@ -2,6 +2,8 @@
 
     python -m companion.convert IN.tlog OUT.tlog --to ardupilot [--from paper] [--config FILE]
 
+(``IN`` may be a .tlog.gz; ``OUT`` is written uncompressed.)
+
 Every record other than the vehicle's flow messages is copied byte for byte (record times too);
 each flow message is decoded in the source convention (``profiles.flow_columns``) and encoded
 again in the target one (CONVENTIONS.md, "Sensor profiles"), with the sender's ids and sequence
@@ -40,6 +42,7 @@ from companion.config import Config, load_config
 from companion.errors import ExitCode, FlowholdError, RecordingError
 from companion.estimator import frame_spacing
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FieldView, Profile, flow_columns
+from companion.recording import read_recording_bytes
 from companion.tlog_writer import TlogWriter, mav_encoder
 
 _HEADER = struct.Struct(">Q")
@@ -134,13 +137,12 @@ class _Converter:
 
 def convert_tlog(src_path: str | Path, dst_path: str | Path, *, src: Profile, dst: Profile,
                  cfg: Config | None = None) -> int:
-    """Write ``dst_path``: ``src_path`` with the flow messages in profile ``dst``. Returns the
-    number of flow messages converted. Raises RecordingError for a damaged or flow-less file."""
+    """Write ``dst_path``: ``src_path`` (a .tlog, or a .tlog.gz) with the flow messages in
+    profile ``dst``. Returns the number of flow messages converted. Raises RecordingError for a
+    damaged or flow-less file."""
     cfg = cfg if cfg is not None else load_config()
     src_path, dst_path = Path(src_path), Path(dst_path)
-    if not src_path.is_file():
-        raise RecordingError(f"recording not found: {src_path}")
-    data = src_path.read_bytes()
+    data = read_recording_bytes(src_path)  # a .tlog.gz: decompressed in memory
     conv = _Converter(cfg, src, dst)
     parser = mavlink2.MAVLink(None)
     parser.robust_parsing = True
@@ -179,7 +181,7 @@ def convert_tlog(src_path: str | Path, dst_path: str | Path, *, src: Profile, ds
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m companion.convert", description=__doc__.splitlines()[0])
-    ap.add_argument("recording", help="input .tlog")
+    ap.add_argument("recording", help="input .tlog (or .tlog.gz)")
     ap.add_argument("out", help="output .tlog")
     ap.add_argument("--from", dest="src", choices=[p.value for p in Profile],
                     help="the input's profile (default: detected)")

@@ -7,14 +7,20 @@ message's position in the file (``record``), so the original interleaving of mes
 be rebuilt by sorting on ``record``.
 
 Readers: ``companion.tlog_reader.read_tlog`` (.tlog), ``companion.importers`` (DataFlash .bin,
-PX4 .ulg, CSV with a column map). ``load_recording`` picks one by file type.
+PX4 .ulg, CSV with a column map). ``load_recording`` picks one by file type. Every reader also
+takes the file gzip-compressed (``.tlog.gz``, ``.bin.gz``, ``.ulg.gz``, ``.csv.gz``): it is
+decompressed in memory (``read_recording_bytes``).
 """
 
 from __future__ import annotations
 
+import gzip
+import io
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -114,15 +120,83 @@ class Recording:
         return sum(len(t) for t in self.tables.values())
 
 
-def load_recording(path: str | Path, *, sensor_config: str | Path | None = None) -> Recording:
+#: the suffix of a gzip-compressed recording (any case): ``flight.tlog.gz``, ``log.BIN.gz``
+GZIP_SUFFIX = ".gz"
+
+
+def is_gzip_path(path: str | Path) -> bool:
+    """Whether ``path`` names a gzip-compressed recording (a trailing ``.gz``, any case)."""
+    return Path(path).suffix.lower() == GZIP_SUFFIX
+
+
+def recording_name(path: str | Path) -> str:
+    """The recording's file name without a trailing ``.gz``: ``flight_a.tlog.gz`` -> ``flight_a.tlog``."""
+    name = Path(path).name
+    return name[: -len(GZIP_SUFFIX)] if is_gzip_path(name) else name
+
+
+def recording_suffix(path: str | Path) -> str:
+    """The format suffix in lower case, looking through a trailing ``.gz``: ``.tlog``, ``.bin``,
+    ``.ulg``, ``.csv`` (``""`` when there is none)."""
+    return Path(recording_name(path)).suffix.lower()
+
+
+def recording_stem(path: str | Path) -> str:
+    """The file name without its format suffix and a trailing ``.gz``: ``x.csv.gz`` -> ``x``."""
+    return Path(recording_name(path)).stem
+
+
+def gunzip(data: bytes, name: str) -> bytes:
+    """``data`` (the bytes of the gzip file ``name``) decompressed; a one-line RecordingError
+    for a truncated or corrupt file."""
+    try:
+        return gzip.decompress(data)
+    except EOFError:
+        raise RecordingError(f"{name}: truncated gzip file (the compressed data end early): "
+                             "cannot decompress it") from None
+    except (OSError, zlib.error) as exc:  # gzip.BadGzipFile is an OSError
+        raise RecordingError(f"{name}: corrupt gzip file ({exc}): cannot decompress it") from None
+
+
+def read_recording_bytes(path: str | Path) -> bytes:
+    """The bytes of the recording ``path``, decompressed in memory when it ends in ``.gz``.
+    RecordingError (one line) when it is missing, unreadable or a corrupt gzip file."""
+    p = Path(path)
+    if not p.is_file():
+        raise RecordingError(f"recording not found: {p}")
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise RecordingError(f"{p.name}: cannot read the file ({exc.strerror or exc})") from None
+    return gunzip(data, p.name) if is_gzip_path(p) else data
+
+
+def open_recording(path: str | Path) -> BinaryIO:
+    """The recording ``path`` opened for binary reading: the file itself, or for a ``.gz`` its
+    decompressed bytes in memory. RecordingError as ``read_recording_bytes``."""
+    p = Path(path)
+    if is_gzip_path(p):
+        return io.BytesIO(read_recording_bytes(p))
+    if not p.is_file():
+        raise RecordingError(f"recording not found: {p}")
+    try:
+        return p.open("rb")
+    except OSError as exc:
+        raise RecordingError(f"{p.name}: cannot read the file ({exc.strerror or exc})") from None
+
+
+def load_recording(path: str | Path, *, sensor_config: str | Path | None = None,
+                   progress: bool = False) -> Recording:
     """Read any supported recording into columns: .tlog, DataFlash .bin, PX4 .ulg, or a CSV
-    described by a sensor column map (``sensor_config``)."""
+    described by a sensor column map (``sensor_config``), each also gzip-compressed (``.gz``).
+    The format comes from the suffix (any case) under a trailing ``.gz``; anything else is read
+    as a .tlog. ``progress``: a progress bar on stderr while a long .tlog is read."""
     p = Path(path)
     if not p.exists():
         raise RecordingError(f"recording not found: {p}")
     if p.is_dir():
         raise RecordingError(f"recording path is a directory: {p}")
-    suffix = p.suffix.lower()
+    suffix = recording_suffix(p)
     if sensor_config is not None or suffix == ".csv":
         if sensor_config is None:
             raise RecordingError(f"{p.name}: a CSV needs --sensor-config (a column map in configs/sensors/)")
@@ -139,4 +213,4 @@ def load_recording(path: str | Path, *, sensor_config: str | Path | None = None)
         return read_ulog(p)
     from companion.tlog_reader import read_tlog
 
-    return read_tlog(p)
+    return read_tlog(p, progress=progress)

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -73,7 +74,14 @@ from companion.core import (
 from companion.errors import RecordingError
 from companion.inbound import INT16_CLIP
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FlowColumns, Profile, detect_profile, flow_columns
-from companion.recording import MessageTable, Recording, load_recording
+from companion.recording import (
+    MessageTable,
+    Recording,
+    is_gzip_path,
+    load_recording,
+    read_recording_bytes,
+    recording_name,
+)
 
 COMPANION_COMPONENT = 191
 GUIDED_NOGPS = 20  # ArduCopter custom_mode
@@ -535,12 +543,24 @@ def replay_live(path: str | Path, cfg: Config, profile: Profile, options: Estima
     """Feed a .tlog message by message (pymavlink) to the live ``MessageRouter`` and
     ``CompanionCore``, with the setpoint and engagement of each flow message taken from the
     recording as ``replay`` takes them. Returns the step output of every new frame (repeats
-    dropped). Slow (pymavlink); it is the yardstick ``replay`` is tested against."""
+    dropped). Slow (pymavlink); it is the yardstick ``replay`` is tested against. A .tlog.gz is
+    given to pymavlink decompressed into a temporary file."""
+    rec = load_recording(path)
+    if is_gzip_path(path):
+        with tempfile.TemporaryDirectory(prefix="flowhold-replay-") as tmp:
+            plain = Path(tmp) / recording_name(path)
+            plain.write_bytes(read_recording_bytes(path))
+            return _replay_live(rec, plain, cfg, profile, options)
+    return _replay_live(rec, Path(path), cfg, profile, options)
+
+
+def _replay_live(rec: Recording, path: Path, cfg: Config, profile: Profile, options: EstimatorOptions | None
+                 ) -> list[StepOutput]:
+    """``replay_live`` with the recording read (``rec``) and ``path`` a plain .tlog of it."""
     from pymavlink import mavutil
 
     from companion.inbound import MessageRouter
 
-    rec = load_recording(path)
     fr, sysid = _prepare(rec, cfg, profile)
     core = CompanionCore(cfg, profile, options)
     core.set_engaged(_vehicle_heartbeats(rec, sysid) is None)  # with heartbeats: not before the first says so
@@ -634,18 +654,11 @@ def _options(args: argparse.Namespace, cfg: Config) -> EstimatorOptions:
     return EstimatorOptions(gyro, TiltFilter() if filt == "tilt" else None)
 
 
-def _load(path: str, sensor_config: str | None, progress: bool) -> Recording:
-    if sensor_config is None and Path(path).suffix.lower() not in (".csv", ".bin", ".ulg") and Path(path).is_file():
-        from companion.tlog_reader import read_tlog
-
-        return read_tlog(path, progress=progress)
-    return load_recording(path, sensor_config=sensor_config)
-
-
 def run_cli(args: argparse.Namespace) -> int:
     """``python -m companion replay``: CSV (and plot) of the companion over a recording."""
     cfg = load_config(args.config)
-    rec = _load(args.recording, getattr(args, "sensor_config", None), progress=sys.stderr.isatty())
+    rec = load_recording(args.recording, sensor_config=getattr(args, "sensor_config", None),
+                         progress=sys.stderr.isatty())
     if args.profile:
         profile = Profile(args.profile)
         why = "given"

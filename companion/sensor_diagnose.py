@@ -48,7 +48,7 @@ from scipy import signal
 from companion.config import Config
 from companion.errors import RecordingError
 from companion.profiles import GYRO_MESSAGES, Profile, detect_profile, flow_columns
-from companion.recording import MessageTable, Recording
+from companion.recording import MessageTable, Recording, recording_name, recording_stem
 from companion.report import Finding, Fit, Report, Unexplained, Window
 
 GRAVITY_M_S2 = 9.80665
@@ -99,7 +99,7 @@ class DocumentedMotion:
     source: str
 
 
-#: Documented motions of known recordings, by file name (shared/data/real/stampfly/README.md).
+#: Documented motions of known recordings, by file name, also gzip-compressed (data/real/stampfly/README.md).
 DOCUMENTED_MOTIONS: dict[str, DocumentedMotion] = {
     "flow_test_x_axis_01.csv": DocumentedMotion(
         0.20, ("+x", "-x"), False, True,
@@ -1288,7 +1288,7 @@ def run_sensor_diagnosis(rec: Recording, cfg: Config, *, report_dir: Path | None
     still = still_rows(t, g_rows, cx, cy, st)
     bias_z = float(np.mean(g_rows[still, 2])) if np.any(still) else float("nan")
     band = RotationBandFit(st, rng).fit(s, rows, bias.bias)
-    motion = DOCUMENTED_MOTIONS.get(s.name)
+    motion = DOCUMENTED_MOTIONS.get(recording_name(s.name))  # flow_test_x_axis_01.csv(.gz)
     zero2 = np.zeros(2)
     disp_nominal = displacement_parts(s, rows, zero2, 0.0, 0.0, st)
     delay = band.delay_ if band.fitted and band.delay_sigma_ < 0.01 else 0.0
@@ -1662,7 +1662,7 @@ def plot_diagnosis(d: SensorDiagnosis, path: Path) -> None:
 def write_report_dir(d: SensorDiagnosis, report_dir: Path) -> Path:
     """Write ``<stem>_sensor.png`` and ``report.md`` into ``report_dir``; returns the .md path."""
     report_dir.mkdir(parents=True, exist_ok=True)
-    stem = Path(d.series.name).stem
+    stem = recording_stem(d.series.name)
     png = report_dir / f"{stem}_sensor.png"
     plot_diagnosis(d, png)
     md = report_dir / "report.md"

@@ -46,7 +46,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion.errors import RecordingError
-from companion.recording import MessageTable, Recording
+from companion.recording import MessageTable, Recording, is_gzip_path, read_recording_bytes
 
 STX_V1 = 0xFE
 STX_V2 = 0xFD
@@ -675,7 +675,15 @@ def _unknown_fields(buf: np.ndarray, s: np.ndarray, end: np.ndarray) -> dict[str
 
 
 def _load(path: Path) -> tuple[np.ndarray, int]:
-    """The file's bytes in a zero-padded uint8 array, and the file length."""
+    """The file's bytes in a zero-padded uint8 array, and the file length (a ``.gz`` file:
+    decompressed in memory, and the decompressed length)."""
+    if is_gzip_path(path):
+        data = read_recording_bytes(path)
+        n_bytes = len(data)
+        buf = np.empty(n_bytes + _PAD, dtype=np.uint8)
+        buf[:n_bytes] = np.frombuffer(data, dtype=np.uint8)
+        buf[n_bytes:] = 0
+        return buf, n_bytes
     n_bytes = path.stat().st_size
     buf = np.empty(n_bytes + _PAD, dtype=np.uint8)
     buf[n_bytes:] = 0
@@ -850,7 +858,8 @@ def _tables(buf: np.ndarray, pk: _Packets, t_s: np.ndarray, progress: _Progress
 
 
 def read_tlog(path: str | Path, *, progress: bool = False) -> Recording:
-    """Read a .tlog into a ``Recording`` (``source_format`` "tlog") of per-message columns.
+    """Read a .tlog into a ``Recording`` (``source_format`` "tlog") of per-message columns; a
+    ``.tlog.gz`` is decompressed in memory first (byte counts are of the decompressed file).
 
     ``t_s``: the record header's UNIX time, s (µs / 1e6); ``record``: index of the packet
     among the file's good packets (0..N-1, file order); ``sysid``/``compid``: from the packet

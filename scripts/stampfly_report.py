@@ -1,9 +1,10 @@
 """Regenerate the StampFly results in docs/stampfly.md (the part between the results markers).
 
-Runs the sensor-only diagnosis (``companion.sensor_diagnose``) on every CSV of the StampFly
-folder with ``configs/sensors/stampfly.toml`` and the paper's Q (``configs/paper.toml``), writes
-one report folder per file (plot, report.md, mismatch JSON) under ``--plots``, pools the
-leg-based scales across files, and rewrites the tables in the document.
+Runs the sensor-only diagnosis (``companion.sensor_diagnose``) on every CSV (``.csv`` or
+``.csv.gz``) of the StampFly folder (default ``data/real/stampfly/``) with
+``configs/sensors/stampfly.toml`` and the paper's Q (``configs/paper.toml``), writes one report
+folder per file (plot, report.md, mismatch JSON) under ``--plots``, pools the leg-based scales
+across files, and rewrites the tables in the document.
 
     .venv/bin/python scripts/stampfly_report.py [--data DIR] [--plots out/stampfly] [--doc docs/stampfly.md]
 """
@@ -21,14 +22,14 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 
 from companion.config import load_config  # noqa: E402
-from companion.recording import load_recording  # noqa: E402
+from companion.recording import load_recording, recording_name, recording_stem, recording_suffix  # noqa: E402
 from companion.sensor_diagnose import (  # noqa: E402
     SensorDiagnosis,
     pool_scales,
     run_sensor_diagnosis,
 )
 
-DATA = REPO.parent / "shared" / "data" / "real" / "stampfly"
+DATA = REPO / "data" / "real" / "stampfly"
 BEGIN = "<!-- stampfly-results:begin (scripts/stampfly_report.py rewrites this part) -->"
 END = "<!-- stampfly-results:end -->"
 #: the maker's effective scales (README "Flow axes and scale"), rad per count
@@ -71,7 +72,8 @@ def file_row(d: SensorDiagnosis) -> str:
     missing = f"{100 * mi.parameters['fraction']:.1f} %" + (f", {gaps} gaps" if gaps else "")
     rep = (f"{100 * rp.parameters['fraction_of_rows']:.0f} % of rows" if rp.parameters["count"] else "none")
     a_med = float(np.median(d.series.range_m))
-    return (f"| `{d.series.name}` | {ref} | {a_med:.2f} | {_pm(sc.parameters['scale_x'], sc.uncertainty['scale_x'])} "
+    return (f"| `{recording_name(d.series.name)}` | {ref} | {a_med:.2f} "
+            f"| {_pm(sc.parameters['scale_x'], sc.uncertainty['scale_x'])} "
             f"| {_pm(sc.parameters['scale_y'], sc.uncertainty['scale_y'])} | {rot[0]} | {rot[1]} | {delay} | {bias} "
             f"| {missing} | {rep} | {hr.parameters['update_rate_hz']:.0f} |")
 
@@ -82,12 +84,12 @@ def legs_row(d: SensorDiagnosis, pooled: np.ndarray) -> str:
     legs = ", ".join(f"{lg.name} {100 * lg.length(1, 1):.1f} / {100 * lg.length(d.scale[0], d.scale[1]):.1f} / "
                      f"{100 * lg.length(pooled[0], pooled[1]):.1f}" for lg in d.legs)
     ho = (f"{100 * f.heldout_before_:.1f} → {100 * f.heldout_after_:.1f}" if np.isfinite(f.heldout_after_) else "n/a")
-    return f"| `{d.series.name}` | {len(d.legs)} | {legs} | {ho} | {f.chi2_red_:.2f} |"
+    return f"| `{recording_name(d.series.name)}` | {len(d.legs)} | {legs} | {ho} | {f.chi2_red_:.2f} |"
 
 
 def render(diags: list[SensorDiagnosis], plots: Path) -> str:
-    by = {d.series.name: d for d in diags}
-    ds = [by[n] for n in ORDER if n in by] + [d for d in diags if d.series.name not in ORDER]
+    by = {recording_name(d.series.name): d for d in diags}
+    ds = [by[n] for n in ORDER if n in by] + [d for n, d in by.items() if n not in ORDER]
     pooled = pool_scales(ds)
     documented = pool_scales([d for d in ds if d.motion is not None and d.motion.documented])
     q = ds[0].series.q_rad_per_count
@@ -132,7 +134,7 @@ def render(diags: list[SensorDiagnosis], plots: Path) -> str:
                     f"values {vals.min():.2f} – {vals.max():.2f}, χ²_red {chi2:.1f}."]
     out += ["", f"Leave-one-file-out (each file's legs predicted with the scale pooled from the other files): RMS leg "
                 f"error {100 * pooled.heldout_before:.1f} cm with the paper's Q → {100 * pooled.heldout_after:.1f} cm. "
-                "Per file: " + ", ".join(f"`{k}` {100 * b:.1f} → {100 * a_:.1f}"
+                "Per file: " + ", ".join(f"`{recording_name(k)}` {100 * b:.1f} → {100 * a_:.1f}"
                                          for k, (b, a_) in pooled.heldout_per_file.items()) + " cm."]
     out += ["", "Plots (paper model against the extended one, per file) and per-file reports: `" + str(plots) +
             "/<file>/` (`<file>_sensor.png`, `report.md`, `<file>.json`).", "", END]
@@ -141,7 +143,7 @@ def render(diags: list[SensorDiagnosis], plots: Path) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default=str(DATA), help="folder with the StampFly CSVs")
+    ap.add_argument("--data", default=str(DATA), help="folder with the StampFly CSVs (.csv or .csv.gz)")
     ap.add_argument("--sensor-config", default=str(REPO / "configs" / "sensors" / "stampfly.toml"))
     ap.add_argument("--config", default=None, help="parameter set (default configs/paper.toml)")
     ap.add_argument("--plots", default="out/stampfly", help="folder for the per-file plots, reports and JSON")
@@ -149,7 +151,7 @@ def main() -> int:
     ap.add_argument("--no-plots", action="store_true", help="skip the plots (faster)")
     args = ap.parse_args()
     cfg = load_config(args.config)
-    files = sorted(Path(args.data).glob("*.csv"))
+    files = sorted(f for f in Path(args.data).iterdir() if recording_suffix(f) == ".csv")
     if not files:
         print(f"error: no CSV files in {args.data}", file=sys.stderr)
         return 1
@@ -157,10 +159,10 @@ def main() -> int:
     diags = []
     for f in files:
         rec = load_recording(f, sensor_config=args.sensor_config)
-        out = None if args.no_plots else plots / f.stem
+        out = None if args.no_plots else plots / recording_stem(f)
         d = run_sensor_diagnosis(rec, cfg, report_dir=out)
         if out is not None:
-            d.report.write_json(out / f"{f.stem}.json")
+            d.report.write_json(out / f"{recording_stem(f)}.json")
         diags.append(d)
         print(f"{f.name}: done" + (f" ({out})" if out else ""))
     doc = Path(args.doc)

@@ -1,6 +1,6 @@
 """The ``ardupilot`` profile end to end on ArduCopter SITL data (issue #9).
 
-``../shared/data/sitl/ardupilot/flight_a.tlog``: ArduCopter V4.7.0-dev SITL flown 120 s in
+``data/sitl/ardupilot/flight_a.tlog.gz``: ArduCopter V4.7.0-dev SITL flown 120 s in
 GUIDED_NOGPS by a plain eq. 15 + PI companion on the simulated flow sensor (README beside it).
 Third-party data: ArduPilot's physics, sensor noise and message conventions. The reference
 velocity is the EKF's GPS-aided LOCAL_POSITION_NED rotated into body axes by ATTITUDE's yaw,
@@ -22,19 +22,17 @@ from companion.convert import _records, convert_tlog
 from companion.core import EstimatorOptions, GyroSource, TiltFilter
 from companion.outbound import quaternion_to_euler
 from companion.profiles import Profile, detect_profile
-from companion.recording import Recording, load_recording
+from companion.recording import Recording, load_recording, read_recording_bytes
 from companion.replay import replay, replay_live
 from companion.tlog_writer import TlogWriter
 from simvehicle.scenarios import Scenario, fly
 
 REPO = Path(__file__).resolve().parent.parent
-FLIGHT_A = REPO.parent / "shared" / "data" / "sitl" / "ardupilot" / "flight_a.tlog"
+FLIGHT_A = REPO / "data" / "sitl" / "ardupilot" / "flight_a.tlog.gz"
 #: README: SIM_FLOW_RND = 0.05 (uniform +-0.05 rad/s on each flow rate) at a height of 1.5 m
 FLOW_NOISE_M_S = 0.05 / math.sqrt(3.0) * 1.5
 #: float32 on the wire: relative rounding 2^-24
 F32 = 2.0 ** -24
-
-pytestmark = pytest.mark.skipif(not FLIGHT_A.exists(), reason="flight_a.tlog not available")
 
 
 @pytest.fixture(scope="module")
@@ -177,7 +175,7 @@ def test_tilt_filter_is_more_accurate_without_adding_lag(rec, paper_cfg, ekf, pl
 def test_flight_a_slice_fast_replay_equals_the_live_path(tmp_path, paper_cfg):
     """49-56 s of flight_a (the take-over at 51.16 s) message by message through the live
     router and core, against the column replay: equal, bit for bit, for both gyro sources."""
-    data = FLIGHT_A.read_bytes()
+    data = read_recording_bytes(FLIGHT_A)
     path = tmp_path / "slice.tlog"
     t0 = None
     with TlogWriter(path) as w:

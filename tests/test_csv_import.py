@@ -9,6 +9,7 @@ mrad/s, accel m/s^2 -> milli-g, ToF m -> cm, flow ``dX_paper = -raw_flow_dx``,
 from __future__ import annotations
 
 import csv
+import gzip
 import shutil
 from pathlib import Path
 
@@ -23,17 +24,16 @@ from companion.recording import load_recording
 from companion.sensor_diagnose import find_read_grid
 
 REPO = Path(__file__).resolve().parent.parent
-STAMPFLY = REPO.parent / "shared" / "data" / "real" / "stampfly"
-XTEST = STAMPFLY / "flow_test_x_axis_01.csv"
+STAMPFLY = REPO / "data" / "real" / "stampfly"
+XTEST = STAMPFLY / "flow_test_x_axis_01.csv.gz"
 MAP = REPO / "configs" / "sensors" / "stampfly.toml"
 G = 9.80665
 Q_PAPER = 0.09 / 57.3
 
-needs_data = pytest.mark.skipif(not XTEST.exists(), reason="StampFly recordings not present")
-
 
 def _rows(path: Path) -> list[dict[str, str]]:
-    with path.open(newline="") as fh:
+    """The rows of a .csv.gz, read independently with gzip and the ``csv`` module."""
+    with gzip.open(path, "rt", newline="") as fh:
         return list(csv.DictReader(fh))
 
 
@@ -42,7 +42,6 @@ def xtest():
     return read_csv(XTEST, MAP), _rows(XTEST)
 
 
-@needs_data
 @pytest.mark.parametrize("i", [0, 1, 2, 917, 1833])
 def test_row_values_follow_the_map(xtest, i):
     rec, rows = xtest
@@ -68,7 +67,6 @@ def test_row_values_follow_the_map(xtest, i):
     assert ds["min_distance"][i] == pytest.approx(1.0) and ds["max_distance"][i] == pytest.approx(300.0)
 
 
-@needs_data
 def test_recording_shape(xtest):
     rec, rows = xtest
     assert rec.source_format == "csv" and rec.profile_hint == "paper"
@@ -80,7 +78,6 @@ def test_recording_shape(xtest):
     assert any("never reached the log" in n for n in rec.notes)
 
 
-@needs_data
 def test_translation_sign_on_the_data(xtest):
     """README: the X test gives about +406 raw counts out and -405 back (its exact counting rule
     is not stated; plain sums over its time windows are within 10 %); through the paper's eq. 15
@@ -99,9 +96,8 @@ def test_translation_sign_on_the_data(xtest):
     assert np.sum(vx[out]) > 0 > np.sum(vx[back])
 
 
-@needs_data
 def test_load_recording_dispatches_csv_and_files_without_mag():
-    rec = load_recording(STAMPFLY / "square_30cm.csv", sensor_config=MAP)  # 37 columns, no raw_mag_*
+    rec = load_recording(STAMPFLY / "square_30cm.csv.gz", sensor_config=MAP)  # 37 columns, no raw_mag_*
     assert len(rec.tables["OPTICAL_FLOW"]) == 1833
     with pytest.raises(RecordingError, match="needs --sensor-config"):
         load_recording(XTEST)
@@ -277,7 +273,6 @@ def test_slow_rows_are_distinct_readings():
     assert grid.slot is None and "never closer" in grid.method
 
 
-@needs_data
 def test_shipped_map_loads_and_names_every_key():
     cmap = load_column_map(MAP)
     assert cmap.flow.read_period_ms == 10.0
@@ -287,8 +282,6 @@ def test_shipped_map_loads_and_names_every_key():
 
 def test_a_copy_of_the_map_elsewhere_still_works(tmp_path):
     """The map holds no paths: a copy in another folder reads the same CSV."""
-    if not XTEST.exists():
-        pytest.skip("StampFly recordings not present")
     shutil.copy(MAP, tmp_path / "copy.toml")
     rec = read_csv(XTEST, tmp_path / "copy.toml")
     assert len(rec.tables["RAW_IMU"]) == 1834
@@ -305,14 +298,14 @@ def test_replay_of_a_csv_uses_each_readings_own_10ms_span_and_keeps_every_row(tm
     import numpy as np
 
     repo = Path(__file__).resolve().parent.parent
-    src = repo.parent / "shared/data/real/stampfly/flow_test_x_axis_01.csv"
+    src = repo / "data/real/stampfly/flow_test_x_axis_01.csv.gz"
     out = tmp_path / "x.csv"
     r = subprocess.run([sys.executable, "-m", "companion", "replay", str(src), "--sensor-config",
                         str(repo / "configs/sensors/stampfly.toml"), "--csv", str(out)],
                        capture_output=True, text=True, timeout=120, cwd=repo)
     assert r.returncode == 0, r.stderr
     d = np.genfromtxt(out, delimiter=",", names=True, dtype=None, encoding=None)
-    with src.open() as fh:
+    with gzip.open(src, "rt") as fh:
         assert len(d) == sum(1 for _ in fh) - 1  # one output row per CSV row
     q = 0.09 / 57.3
     ok = np.isfinite(d["scene_rate_x_rad_s"])

@@ -33,7 +33,7 @@ from simvehicle.flights import TOLERANCES, flight_plan, param_error_ratios, with
 from simvehicle.scenarios import fly
 
 REPO = Path(__file__).resolve().parent.parent
-FLIGHT_A = REPO.parent / "shared" / "data" / "sitl" / "ardupilot" / "flight_a.tlog"
+FLIGHT_A = REPO / "data" / "sitl" / "ardupilot" / "flight_a.tlog.gz"
 CLI_TIMEOUT_S = 180.0
 
 #: CONVENTIONS.md effect table (parameter keys), plus the two effects this tool adds
@@ -41,6 +41,7 @@ CONVENTION_EFFECTS = {
     "linear_drag": {"b"}, "gyro_bias": {"bias_x", "bias_y"}, "flow_scale": {"scale_x", "scale_y"},
     "flow_delay": {"delay"}, "flow_yaw_misalignment": {"yaw"}, "attitude_dynamics": {"omega_p", "zeta"},
     "range_offset": {"offset"}, "wind_force": {"fx", "fy", "start_s", "end_s"},
+    "quadratic_drag": {"c"}, "flow_lever_arm": {"rx", "ry", "rz"}, "gyro_lag": {"tau"},
 }
 ADDED_EFFECTS = {"attitude_delay": {"delay"}, "flow_rotation_gain": {"gain"}}
 
@@ -442,7 +443,6 @@ def test_recording_without_commands_goes_to_sensor_mode(tmp_path, monkeypatch):
 # ArduPilot SITL (issue #9)
 
 
-@pytest.mark.skipif(not FLIGHT_A.exists(), reason="shared ArduPilot SITL recording not present")
 def test_ardupilot_flight_is_diagnosed_and_its_findings_improve_the_heldout_fit(tmp_path):
     t = time.perf_counter()
     proc = run_cli(str(FLIGHT_A), "--profile", "ardupilot", "--config", str(REPO / "configs" / "ardupilot_sitl.toml"),

@@ -1,4 +1,4 @@
-"""Sensor-only diagnosis on the seven real StampFly recordings (shared/data/real/stampfly/).
+"""Sensor-only diagnosis on the seven real StampFly recordings (data/real/stampfly/, read as .csv.gz).
 
 Expected values come from that folder's README (row counts, timing faults, the documented
 motions, the maker's scales) or from an independent computation here on the raw CSV with the
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import gzip
 import json
 import math
 from pathlib import Path
@@ -29,7 +30,7 @@ from companion.sensor_diagnose import (
 )
 
 REPO = Path(__file__).resolve().parent.parent
-DATA = REPO.parent / "shared" / "data" / "real" / "stampfly"
+DATA = REPO / "data" / "real" / "stampfly"
 MAP = REPO / "configs" / "sensors" / "stampfly.toml"
 FILES = ("flow_test_x_axis_01.csv", "flow_test_square_01_final.csv", "square01_13s.csv", "square_30cm.csv",
          "square_30cm_air.csv", "static_final.csv", "test_400hz_result.csv")
@@ -40,13 +41,16 @@ Q = 0.09 / 57.3
 #: README "Flow axes and scale": the maker's effective rad per count (tuned on these logs)
 MAKER = (0.00209, 0.00225)
 
-pytestmark = pytest.mark.skipif(not (DATA / FILES[0]).exists(), reason="StampFly recordings not present")
-
 
 @pytest.fixture(scope="module")
 def diags() -> dict[str, SensorDiagnosis]:
     cfg = load_config()
-    return {f: run_sensor_diagnosis(load_recording(DATA / f, sensor_config=MAP), cfg) for f in FILES}
+    return {f: run_sensor_diagnosis(load_recording(_path(f), sensor_config=MAP), cfg) for f in FILES}
+
+
+def _path(name: str) -> Path:
+    """The recording ``name`` (e.g. ``static_final.csv``) as the repository holds it: gzip-compressed."""
+    return DATA / f"{name}.gz"
 
 
 def _finding(d: SensorDiagnosis, effect: str):  # noqa: ANN202
@@ -55,7 +59,7 @@ def _finding(d: SensorDiagnosis, effect: str):  # noqa: ANN202
 
 @functools.cache
 def _raw(name: str) -> dict[str, np.ndarray]:
-    with (DATA / name).open(newline="") as fh:
+    with gzip.open(_path(name), "rt", newline="") as fh:
         rows = list(csv.DictReader(fh))
     return {k: np.array([float(r[k]) for r in rows]) for k in
             ("timestamp_ms", "raw_gyro_x", "raw_gyro_y", "raw_flow_dx", "raw_flow_dy", "raw_tof")}
@@ -268,7 +272,7 @@ def test_json_report_contract(diags, tmp_path):
         out = tmp_path / f"{name}.json"
         diags[name].report.write_json(out)
         data = json.loads(out.read_text())
-        assert data["recording"] == name and data["mode"] == "sensor"
+        assert data["recording"] == _path(name).name and data["mode"] == "sensor"
         effects = [f["effect"] for f in data["findings"]]
         for e in ("flow_scale", "gyro_bias", "flow_delay", "flow_yaw_misalignment", "missing_flow_readings",
                   "repeated_flow_readings", "held_range"):
@@ -285,7 +289,7 @@ def test_json_report_contract(diags, tmp_path):
 def test_cli_writes_json_and_report(tmp_path, capsys):
     """What the lead wires into ``diagnose``: the parser's arguments, straight through."""
     out = tmp_path / "x.json"
-    args = build_parser().parse_args(["diagnose", str(DATA / "flow_test_x_axis_01.csv"), "--sensor-config", str(MAP),
+    args = build_parser().parse_args(["diagnose", str(_path("flow_test_x_axis_01.csv")), "--sensor-config", str(MAP),
                                       "--json", str(out), "--report", str(tmp_path / "rep")])
     assert run_sensor_cli(args) == 0
     data = json.loads(out.read_text())

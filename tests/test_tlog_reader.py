@@ -21,8 +21,8 @@ from companion.recording import Recording, load_recording
 from companion.tlog_reader import crc16_mcrf4xx, crc_of_rows, read_tlog
 from companion.tlog_writer import TlogWriter, mav_encoder
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-FLIGHT_A = SHARED / "data" / "sitl" / "ardupilot" / "flight_a.tlog"
+#: in the repository, gzip-compressed (read directly; pymavlink gets the ``flight_a_plain`` copy)
+FLIGHT_A = Path(__file__).resolve().parents[1] / "data" / "sitl" / "ardupilot" / "flight_a.tlog.gz"
 
 #: every message type the project reads or writes
 PROJECT_MESSAGES = (
@@ -638,8 +638,6 @@ def test_missing_file_is_an_error(tmp_path):
 
 @pytest.fixture(scope="module")
 def flight_a() -> Recording:
-    if not FLIGHT_A.exists():
-        pytest.skip(f"{FLIGHT_A} not present")
     return read_tlog(FLIGHT_A)
 
 
@@ -648,10 +646,10 @@ def test_flight_a_reads_clean(flight_a):
     assert (flight_a.skipped_bytes, flight_a.skipped_packets, flight_a.notes) == (0, 0, [])
 
 
-def test_flight_a_prefix_equals_pymavlink(flight_a, monkeypatch):
+def test_flight_a_prefix_equals_pymavlink(flight_a, flight_a_plain, monkeypatch):
     """The first 10 000 messages (the set-up and 25 s of streaming): order, senders, times and
     every field equal pymavlink's (the whole file: the slow test below)."""
-    msgs = pymavlink_messages(FLIGHT_A, monkeypatch, limit=10_000)
+    msgs = pymavlink_messages(flight_a_plain, monkeypatch, limit=10_000)
     sub = Recording(flight_a.path, {}, "tlog")
     for name, tab in flight_a.tables.items():
         if (tab.record < len(msgs)).any():
@@ -661,7 +659,7 @@ def test_flight_a_prefix_equals_pymavlink(flight_a, monkeypatch):
 
 
 @pytest.mark.slow
-def test_flight_a_whole_file_equals_pymavlink(flight_a, monkeypatch):
-    msgs = pymavlink_messages(FLIGHT_A, monkeypatch)
+def test_flight_a_whole_file_equals_pymavlink(flight_a, flight_a_plain, monkeypatch):
+    msgs = pymavlink_messages(flight_a_plain, monkeypatch)
     assert Counter(m.get_type() for m in msgs) == {n: len(t) for n, t in flight_a.tables.items()}
     assert_matches_pymavlink(flight_a, msgs)

@@ -22,12 +22,14 @@ The tables come out as if the vehicle had streamed MAVLink (paper profile):
 
 ``t_s`` of every table is the device time in seconds. ``record`` is row-ordered and unique:
 ``3 * row + {0: RAW_IMU, 1: DISTANCE_SENSOR, 2: OPTICAL_FLOW}`` (``row`` counts data lines from
-0), so ``record // 3`` is the CSV row of any message. sysid 1, compid 1.
+0), so ``record // 3`` is the CSV row of any message. sysid 1, compid 1. A ``.csv.gz`` is read
+the same way, decompressed in memory.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,7 +39,7 @@ import numpy as np
 
 from companion.config import bind, read_toml
 from companion.errors import ConfigError, RecordingError
-from companion.recording import MessageTable, Recording
+from companion.recording import MessageTable, Recording, open_recording
 
 GRAVITY_M_S2 = 9.80665
 MAV_SENSOR_ROTATION_PITCH_270 = 25
@@ -328,8 +330,8 @@ def _read_rows(p: Path) -> tuple[list[str], list[list[str]], list[int], list[str
     is an error."""
     notes: list[str] = []
     try:
-        with p.open(newline="", encoding="utf-8-sig") as fh:
-            lines = [r for r in csv.reader(fh)]
+        with open_recording(p) as raw, io.TextIOWrapper(raw, encoding="utf-8-sig", newline="") as fh:
+            lines = [r for r in csv.reader(fh)]  # a .csv.gz: decompressed in memory
     except UnicodeDecodeError:
         raise RecordingError(f"{p.name}: not a text CSV file (not UTF-8)") from None
     except csv.Error as exc:

@@ -1,4 +1,5 @@
-"""ArduPilot DataFlash logs (.bin) into the columnar ``Recording``, in MAVLink names and units.
+"""ArduPilot DataFlash logs (.bin, or .bin.gz: decompressed in memory) into the columnar
+``Recording``, in MAVLink names and units.
 
 The tables come out as if ArduPilot had streamed them over MAVLink, so the ``ardupilot`` profile
 of CONVENTIONS.md applies unchanged (``profile_hint = "ardupilot"``). Mapping (docs/importers.md
@@ -39,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.errors import RecordingError
-from companion.recording import MessageTable, Recording
+from companion.recording import MessageTable, Recording, read_recording_bytes
 
 #: standard gravity used by ArduPilot (GRAVITY_MSS) for RAW_IMU milli-g
 GRAVITY_M_S2 = 9.80665
@@ -89,9 +90,8 @@ def read_dataflash(path: str | Path) -> Recording:
     holds no usable optical flow (OF). Missing gyro, range or attitude are skipped with a note.
     """
     p = Path(path)
-    if not p.is_file():
-        raise RecordingError(f"recording not found: {p}")
-    data = np.fromfile(p, dtype=np.uint8)
+    raw = read_recording_bytes(p)  # a .bin.gz: decompressed in memory
+    data = np.frombuffer(raw, dtype=np.uint8)
     if data.size == 0:
         raise RecordingError(f"{p.name}: empty file, not a DataFlash log")
     if bytes(data[:3]) != _HEAD + bytes([_FMT_ID]):
@@ -99,16 +99,16 @@ def read_dataflash(path: str | Path) -> Recording:
             f"{p.name}: not an ArduPilot DataFlash log (no 0xA3 0x95 FMT header at the start)")
     try:
         with np.errstate(invalid="ignore", over="ignore"):  # damaged floats (NaN, sNaN, inf) pass through
-            return _read(p, data)
+            return _read(p, raw, data)
     except RecordingError as exc:
         if str(exc).startswith(p.name):
             raise
         raise RecordingError(f"{p.name}: {exc}") from None
 
 
-def _read(p: Path, data: np.ndarray) -> Recording:
-    """``read_dataflash`` after the file checks."""
-    messages, skipped, notes = _index(p, data)
+def _read(p: Path, raw: bytes, data: np.ndarray) -> Recording:
+    """``read_dataflash`` after the file checks (``data``: ``raw`` as uint8)."""
+    messages, skipped, notes = _index(p, raw, data)
 
     def take(name: str) -> tuple[Columns, np.ndarray] | None:
         """The decoded messages ``name``, or None (with a note) when their layout lacks a field
@@ -175,8 +175,10 @@ def _read(p: Path, data: np.ndarray) -> Recording:
 # --------------------------------------------------------------------------- file decoding
 
 
-def _index(p: Path, data: np.ndarray) -> tuple[dict[str, tuple[Columns, np.ndarray]], int, list[str]]:
-    """Index the file with pymavlink's DFReader and decode the messages this importer uses.
+def _index(p: Path, raw: bytes, data: np.ndarray
+           ) -> tuple[dict[str, tuple[Columns, np.ndarray]], int, list[str]]:
+    """Index the log's bytes ``raw`` with pymavlink's DFReader and decode the messages this
+    importer uses (``data``: ``raw`` as uint8).
 
     Returns ``{name: (columns, file_offsets)}``, the number of bytes that lie outside complete
     messages (corruption, truncation) and notes on message types that could not be decoded.
@@ -184,34 +186,47 @@ def _index(p: Path, data: np.ndarray) -> tuple[dict[str, tuple[Columns, np.ndarr
     from pymavlink import DFReader
 
     class IndexOnly(DFReader.DFReader_binary):  # type: ignore[misc]
-        """DFReader's indexer without its clock set-up: ``init_clock`` parses every message of
-        a log without GPS (~50 us each) and this importer reads TimeUS directly."""
+        """DFReader's indexer over bytes in memory (so a decompressed .bin.gz needs no file),
+        without its clock set-up: ``init_clock`` parses every message of a log without GPS
+        (~50 us each) and this importer reads TimeUS directly.
 
-        def __init__(self, filename: str) -> None:
-            try:
-                super().__init__(filename, zero_time_base=True)
-            except BaseException:  # DFReader leaves its file and mmap open when it raises
-                for handle in ("data_map", "filehandle"):
-                    with contextlib.suppress(Exception):
-                        getattr(self, handle).close()
-                raise
+        ``DFReader_binary.__init__`` opens and maps a file; this is the same set-up with the
+        bytes as the map (its indexers only slice ``data_map`` or take a memoryview of it)."""
+
+        def __init__(self, buffer: bytes) -> None:
+            DFReader.DFReader.__init__(self)
+            self.filehandle = None
+            self.data_map = buffer
+            self.data_len = len(buffer)
+            self.HEAD1, self.HEAD2 = _HEAD[0], _HEAD[1]
+            self.unpackers = {}
+            self.formats = {_FMT_ID: DFReader.DFFormat(_FMT_ID, "FMT", 89, "BBnNZ", "Type,Length,Name,Format,Columns")}
+            self._zero_time_base = True
+            self.prev_type = None
+            fast = getattr(DFReader, "dfindexer", None)
+            if getattr(fast, "available", False) and os.getenv("PYMAVLINK_FAST_INDEX", "1") == "1":
+                self.init_arrays_fast()
+            else:
+                self.init_arrays()
+            self.init_clock()
+            self.prev_type = None
+            self._rewind(keep_messages=True)
 
         def init_clock(self) -> None:
             self._rewind(keep_messages=True)
             self.clock = DFReader.DFReaderClock_usec()
 
+        def close(self) -> None:
+            """Nothing to close: the bytes belong to the caller."""
+
     wanted = ("OF", "IMU", "GYR", "RFND", "ATT", "RATE", "PARM")
     try:
         with _quiet():
-            reader = IndexOnly(str(p))
+            reader = IndexOnly(raw)
     except Exception as exc:  # DFReader raises bare Exceptions on malformed FMT records
         raise RecordingError(f"{p.name}: DataFlash log could not be indexed ({exc})") from None
-    try:
-        formats = dict(reader.formats)
-        offsets = [np.asarray(o, dtype=np.int64) for o in reader.offsets]
-    finally:
-        with contextlib.suppress(Exception):
-            reader.close()
+    formats = dict(reader.formats)
+    offsets = [np.asarray(o, dtype=np.int64) for o in reader.offsets]
     used = 0
     out: dict[str, tuple[Columns, np.ndarray]] = {}
     notes: list[str] = []

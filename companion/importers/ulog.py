@@ -1,4 +1,5 @@
-"""PX4 ULog files (.ulg) into the columnar ``Recording``, in MAVLink names and units.
+"""PX4 ULog files (.ulg, or .ulg.gz: decompressed in memory) into the columnar ``Recording``,
+in MAVLink names and units.
 
 The tables come out as if PX4 had streamed them over MAVLink, so the ``px4`` profile of
 CONVENTIONS.md applies unchanged (``profile_hint = "px4"``). PX4's uORB flow convention (RH
@@ -46,7 +47,7 @@ from companion.importers.dataflash import (
     nearest_index,
     quaternion_to_euler,
 )
-from companion.recording import MessageTable, Recording
+from companion.recording import MessageTable, Recording, open_recording
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 #: flow topics in order of preference
@@ -82,16 +83,15 @@ def read_ulog(path: str | Path) -> Recording:
     optical-flow topic. Missing gyro, range or attitude topics are skipped with a note.
     """
     p = Path(path)
-    if not p.is_file():
-        raise RecordingError(f"recording not found: {p}")
-    with p.open("rb") as fh:
+    with open_recording(p) as fh:  # a .ulg.gz: decompressed in memory
         head = fh.read(16)
         if len(head) < 16 or head[:7] != ULOG_MAGIC:
             raise RecordingError(f"{p.name}: not a PX4 ULog file (no 'ULog' header)")
         problem = _definitions_problem(fh)
-    if problem:
-        raise RecordingError(f"{p.name}: damaged ULog definitions section ({problem})")
-    topics, notes = _load(p)
+        if problem:
+            raise RecordingError(f"{p.name}: damaged ULog definitions section ({problem})")
+        fh.seek(0)
+        topics, notes = _load(p, fh)
     with np.errstate(invalid="ignore", over="ignore"):  # damaged floats (NaN, sNaN, inf) pass through
         return _tables(p, topics, notes)
 
@@ -157,13 +157,14 @@ def _definitions_problem(fh: BinaryIO) -> str | None:
         pos += 3 + size
 
 
-def _load(p: Path) -> tuple[dict[tuple[str, int], Columns], list[str]]:
-    """Parse with pyulog (only the topics used); ``{(topic, multi_id): columns}`` and notes."""
+def _load(p: Path, fh: BinaryIO) -> tuple[dict[tuple[str, int], Columns], list[str]]:
+    """Parse the open file ``fh`` (of ``p``) with pyulog (only the topics used); ``{(topic,
+    multi_id): columns}`` and notes."""
     from pyulog import ULog
 
     sink = io.StringIO()
     try:
-        with p.open("rb") as fh, contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
+        with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
             ulog = ULog(fh, message_name_filter_list=list(TOPICS), disable_str_exceptions=True)
     except Exception as exc:  # pyulog raises ULogException, struct.error, ValueError, ...
         raise RecordingError(f"{p.name}: ULog could not be parsed ({exc})") from None
