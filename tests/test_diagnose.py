@@ -41,6 +41,7 @@ CONVENTION_EFFECTS = {
     "linear_drag": {"b"}, "gyro_bias": {"bias_x", "bias_y"}, "flow_scale": {"scale_x", "scale_y"},
     "flow_delay": {"delay"}, "flow_yaw_misalignment": {"yaw"}, "attitude_dynamics": {"omega_p", "zeta"},
     "range_offset": {"offset"}, "wind_force": {"fx", "fy", "start_s", "end_s"},
+    "quadratic_drag": {"c"}, "flow_lever_arm": {"rx", "ry", "rz"}, "gyro_lag": {"tau"},
 }
 ADDED_EFFECTS = {"attitude_delay": {"delay"}, "flow_rotation_gain": {"gain"}}
 

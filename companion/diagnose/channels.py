@@ -39,6 +39,7 @@ MIN_SEGMENT_S = 5.0
 MAX_BRIDGE_S = 0.6
 #: a flow timestamp this far behind the previous one (in file order) starts a new boot session (s)
 REBOOT_BACKSTEP_S = 1.0
+CUBIC = True
 _FLAGS = ("flow_rec", "att_rec", "gyro_rec", "cmd_rec")
 _ARRAYS = ("t_s", "dt_s", "seg", "dphi_x_rad", "dphi_y_rad", "gyro_x_rad_s", "gyro_y_rad_s", "range_m", "roll_rad",
            "pitch_rad", "yaw_rad", "roll_cmd_rad", "pitch_cmd_rad", "vx_set_m_s", "vy_set_m_s", "truth_vx_m_s",
@@ -454,8 +455,8 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
     att_t, roll, pitch, yaw = _sorted_unique(np.asarray(at["time_boot_ms"], float) * 1e-3,
                                              np.asarray(at["roll"], float), np.asarray(at["pitch"], float),
                                              np.unwrap(np.asarray(at["yaw"], float)))
-    roll_k = _interp_gapped(tb, att_t, roll, bridge, cubic=True)
-    pitch_k = _interp_gapped(tb, att_t, pitch, bridge, cubic=True)
+    roll_k = _interp_gapped(tb, att_t, roll, bridge, cubic=CUBIC)
+    pitch_k = _interp_gapped(tb, att_t, pitch, bridge, cubic=CUBIC)
     yaw_k = _interp_gapped(tb, att_t, yaw, bridge)
     att_rec = _recorded(tb, att_t, 0.5 * T)
 

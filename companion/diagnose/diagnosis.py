@@ -72,6 +72,11 @@ def _params(effect: str, g: Group, score: ModelScore, evidence_state: dict[str, 
     idx = g.index(cand.params)
     p = {n: float(score.p[i]) for n, i in zip(cand.params, idx, strict=True)}
     sd = {n: float(math.sqrt(max(score.cov[i, i], 0.0))) for n, i in zip(cand.params, idx, strict=True)}
+    if effect == "flow_lever_arm":
+        # CONVENTIONS.md names rx, ry, rz; only rz shows without yaw rate: rx, ry stay at the
+        # centre of gravity, not fitted (no uncertainty)
+        p = {"rx": 0.0, "ry": 0.0, **p}
+        sd = {"rx": math.nan, "ry": math.nan, **sd}
     if effect == "wind_force":
         st = score.state or evidence_state
         p["start_s"] = float(st.get("start_s", math.nan))
@@ -228,12 +233,17 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
     t0 = float(data.t_s[0])
     ga, ap = attitude_group(data, cfg)
     gg, gp = gyro_group(data)
-    gf, fp, fstate = flow_group(data, cfg)
     results: dict[str, GroupResult] = {}
-    for g in (ga, gg, gf):
+    for g in (ga, gg):
         t = time.perf_counter()
         results[g.name] = _fit_group(g, settings, t0)
         timings[f"{g.name}_s"] = time.perf_counter() - t
+    # the flow is compared with the rotation of the gyro above 1 Hz, undone of the lag found
+    lag = float(results["gyro"].final.p[2]) if "gyro_lag" in results["gyro"].chosen else 0.0
+    t = time.perf_counter()
+    gf, fp, fstate = flow_group(data, cfg, gyro_lag_s=lag)
+    results["flow"] = _fit_group(gf, settings, t0)
+    timings["flow_s"] = time.perf_counter() - t
     ap.final_p = results["attitude"].final.p
     if "wind_force" in results["flow"].chosen:
         results["flow"].selector._search(results["flow"].final.p, None)

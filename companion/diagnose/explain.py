@@ -57,6 +57,21 @@ def explain(effect: str, p: dict[str, float], cfg: Config, significant: bool, sd
     if effect == "range_offset":
         return (f"The rangefinder reads {100 * p['offset']:+.1f} cm more than the height the flow sensor sees, so "
                 f"the flow velocity (flow rate x range) is scaled by (h + offset) / h, most at low height.")
+    if effect == "quadratic_drag":
+        c = p["c"]
+        return (f"The air resists horizontal motion with a form drag of {c:.2f} N per (m/s)^2 that eq. 28 leaves "
+                f"out (at 1 m/s {c:.2f} N, at 2 m/s {4 * c:.2f} N), growing with the square of the speed; the "
+                f"PI integrator hides it in the velocity but not in the force balance.")
+    if effect == "flow_lever_arm":
+        rz = p["rz"]
+        return (f"The flow sensor sits {abs(rz) * 100:.1f} cm {'below' if rz > 0 else 'above'} the centre of "
+                f"gravity: it moves with the body rate times that arm, which the flow reads as rotation scaled "
+                f"by (1 + rz / height), most at low height (rx, ry only show with yaw rate and are not fitted).")
+    if effect == "gyro_lag":
+        tau = p["tau"]
+        return (f"The gyro the companion reads is low-pass filtered with a time constant of {tau * 1000:.1f} ms "
+                f"(the autopilot's gyro filter): eq. 15 subtracts a late body rate, which leaks into the velocity "
+                f"as height x {tau * 1000:.0f} ms x angular acceleration.")
     if effect == "wind_force":
         fx, fy = p["fx"], p["fy"]
         return (f"An external horizontal force of {math.hypot(fx, fy):.2f} N (fx {fx:+.2f}, fy {fy:+.2f} N, body "

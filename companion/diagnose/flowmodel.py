@@ -44,8 +44,8 @@ from companion.diagnose.channels import FlightData
 
 AXIS_SIGN = (-1.0, 1.0)
 #: parameter vector of the translational model (CONVENTIONS.md names)
-PARAMS = ("scale_x", "scale_y", "yaw", "delay", "offset", "b", "fx", "fy", "gain")
-NOMINAL = np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+PARAMS = ("scale_x", "scale_y", "yaw", "delay", "offset", "b", "fx", "fy", "gain", "c", "rz")
+NOMINAL = np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
 IDX = {p: i for i, p in enumerate(PARAMS)}
 
 
@@ -123,7 +123,8 @@ class FlowProblem:
     """
 
     def __init__(self, data: FlightData, *, mass_kg: float, gravity_m_s2: float, flow_window_s: float = 1.0,
-                 force_window_s: float = 1.0, average_s: float = 0.2, max_flow_windows: int = 1500) -> None:
+                 force_window_s: float = 1.0, average_s: float = 0.2, max_flow_windows: int = 1500,
+                 rotation_angles: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.data = data
         self.mass_kg = mass_kg
         self.g = gravity_m_s2
@@ -141,8 +142,11 @@ class FlowProblem:
         self.V = np.zeros((2, n))
         self.D = np.zeros((2, n))
         self.Rdot = np.zeros((2, n))
+        self.RA = np.zeros((2, n))
         self._splines: list[tuple[int, int, CubicSpline]] = []
         ang = (data.pitch_rad, data.roll_rad)
+        #: the angles the rotation is taken from (pitch, roll): the recorded attitude, or a fused one
+        rot = rotation_angles if rotation_angles is not None else ang
         dphi = (data.dphi_x_rad, data.dphi_y_rad)
         flow_w: list[np.ndarray] = []
         force_w: list[np.ndarray] = []
@@ -150,11 +154,15 @@ class FlowProblem:
             ts = t[a:b]
             for i in (0, 1):
                 s = AXIS_SIGN[i]
-                self.R[i, a:b] = s * (ang[i][a:b] - ang[i][a])
+                self.R[i, a:b] = s * (rot[i][a:b] - rot[i][a])
                 self.Phi[i, a:b] = np.cumsum(dphi[i][a:b])
                 acc = s * self.g * np.tan(ang[i][a:b])
                 self.V[i, a:b] = _cumtrapz(acc, ts)
                 self.D[i, a:b] = _cumtrapz(self.V[i, a:b], ts)
+                # a flow sensor rz below the centre of gravity moves at v + omega x r: its translation
+                # carries the body rate times rz / A, i.e. integral(dR / A)
+                inc_r = np.diff(self.R[i, a:b]) / (0.5 * (self.A[a + 1:b] + self.A[a:b - 1]))
+                self.RA[i, a:b] = np.concatenate([[0.0], np.cumsum(inc_r)])
             sp = CubicSpline(ts, self.R[:, a:b].T, axis=0)
             self._splines.append((a, b, sp))
             self.Rdot[:, a:b] = sp(ts, 1).T
@@ -294,7 +302,7 @@ class FlowProblem:
         if len(W) == 0:
             return np.zeros((2, 0, self.L1))
         kx, ky, yaw, delay, offset = p[0], p[1], p[2], p[3], p[4]
-        body = p[8] * self._rotation_at(delay) - self.model_translation(offset, delay)
+        body = p[8] * self._rotation_at(delay) + p[10] * self.RA[:, W] - self.model_translation(offset, delay)
         c, s = math.cos(yaw), math.sin(yaw)
         e = self._Phiw.copy()
         e[0] -= (c * body[0] + s * body[1]) / kx
@@ -304,7 +312,7 @@ class FlowProblem:
     def flow_velocity(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Odometry from the flow under the model's sensor geometry: X (2, n) in m (per segment,
         from 0) and Y (2, n) the translational scene angle integral(v/A) in rad."""
-        key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8]))
+        key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8], p[10]))
         return self._vel_cache.get(key, lambda: self._flow_velocity_uncached(p))
 
     def _flow_velocity_uncached(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -316,7 +324,7 @@ class FlowProblem:
         c, s = math.cos(yaw), math.sin(yaw)
         bx = c * sx - s * sy
         by = s * sx + c * sy
-        Y = p[8] * self.R - np.stack([bx, by])
+        Y = p[8] * self.R + p[10] * self.RA - np.stack([bx, by])
         X = np.zeros_like(Y)
         inc = (self._Amid - offset) * np.diff(Y, axis=1)
         inc[:, self._first[1:]] = 0.0  # no increment across a gap
@@ -327,7 +335,7 @@ class FlowProblem:
         """Boundary-averaged pieces of the force balance (each (2, n_windows), m/s per window):
         ``dv`` flow velocity change, ``dv_tilt`` what the tilt explains, ``dx`` the window's
         averaged displacement change (drag regressor, m), ``dt1`` the wind regressor (s)."""
-        dv, dx = self._geometry_parts(p)
+        dv, dx, dq = self._geometry_parts(p)
         k0, k1, d0, d1 = self._k0, self._k1, self._den0, self._den1
         h = self.h
         t = self.t
@@ -339,20 +347,30 @@ class FlowProblem:
             "dv": dv,
             "dv_tilt": self._dv_tilt,
             "dx": dx,
+            "dq": dq,
             "dt1": np.broadcast_to(ravg(k1, d1) - ravg(k0, d0), (2, len(k0))).copy(),
             "span_s": self._span,
         }
 
-    def _geometry_parts(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8]))
+    def _geometry_parts(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8], p[10]))
         return self._geo_cache.get(key, lambda: self._geometry_uncached(p))
 
-    def _geometry_uncached(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _geometry_uncached(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         X, _ = self.flow_velocity(p)
         IX = np.zeros_like(X)
         IX[:, 1:] = np.cumsum(0.5 * (X[:, 1:] + X[:, :-1]) * np.diff(self.t), axis=1)  # used within segments
+        # the form-drag regressor: integral of v |v| (v from the odometry, per segment)
+        v = np.zeros_like(X)
+        for a, b in self.data.segments():
+            if b - a > 1:
+                v[:, a:b] = np.gradient(X[:, a:b], self.t[a:b], axis=1)
+        q = v * np.abs(v)
+        IQ = np.zeros_like(X)
+        IQ[:, 1:] = np.cumsum(0.5 * (q[:, 1:] + q[:, :-1]) * np.diff(self.t), axis=1)
         k0, k1, d0, d1 = self._k0, self._k1, self._den0, self._den1
-        return (self._bavg(X, k1, d1) - self._bavg(X, k0, d0), self._bavg(IX, k1, d1) - self._bavg(IX, k0, d0))
+        return (self._bavg(X, k1, d1) - self._bavg(X, k0, d0), self._bavg(IX, k1, d1) - self._bavg(IX, k0, d0),
+                self._bavg(IQ, k1, d1) - self._bavg(IQ, k0, d0))
 
     def _bavg(self, Z: np.ndarray, k: np.ndarray, den: np.ndarray) -> np.ndarray:
         """Mean of the derivative of Z over [t_k-h, t_k+h]: (Z(k+h) - Z(k-h)) / span."""
@@ -365,5 +383,6 @@ class FlowProblem:
             return np.zeros((2, 0))
         f = self.force_parts(p, start_s, end_s)
         m = self.mass_kg
-        e = f["dv"] - f["dv_tilt"] + (p[5] / m) * f["dx"] - (np.array([[p[6]], [p[7]]]) / m) * f["dt1"]
+        e = (f["dv"] - f["dv_tilt"] + (p[5] / m) * f["dx"] + (p[9] / m) * f["dq"]
+             - (np.array([[p[6]], [p[7]]]) / m) * f["dt1"])
         return e * m / f["span_s"]

@@ -124,21 +124,27 @@ class GyroProblem:
         self.gyro = (cg[:, b] - cg[:, a]) / dt
         self.angle = 0.5 * (ang[:, b] + ang[:, a])
         self.r = self.gyro - self.rate
+        # a gyro low-passed with time constant tau reads g with omega = g + tau g': over the
+        # interval, the body rate is the gyro's mean plus tau (g_b - g_a) / dt. The regressor comes
+        # from the gyro alone, so an attitude estimate's noise (in ``rate`` only) cannot bias tau
+        self.dgyro = (gyr[:, b] - gyr[:, a]) / dt
 
 
 def gyro_group(data: FlightData) -> tuple[Group, GyroProblem]:
     gp = GyroProblem(data)
 
     def residuals(p: np.ndarray) -> list[np.ndarray]:
-        return [gp.r[0] - p[0], gp.r[1] - p[1]]
+        r = gp.gyro + p[2] * gp.dgyro - gp.rate
+        return [r[0] - p[0], r[1] - p[1]]
 
     g = Group(
-        name="gyro", params=("bias_x", "bias_y"), nominal=np.zeros(2), steps=np.array([1e-4, 1e-4]),
-        lower=np.array([-2.0, -2.0]), upper=np.array([2.0, 2.0]), channels=("gyro_x", "gyro_y"),
+        name="gyro", params=("bias_x", "bias_y", "tau"), nominal=np.zeros(3), steps=np.array([1e-4, 1e-4, 5e-4]),
+        lower=np.array([-2.0, -2.0, 0.0]), upper=np.array([2.0, 2.0, 0.3]), channels=("gyro_x", "gyro_y"),
         units=("rad/s", "rad/s"), floors=(max(data.gyro_resolution_rad_s, 1e-5),) * 2, residuals=residuals,
         row_times=[gp.t_s, gp.t_s],
-        candidates=[Candidate("gyro_bias", ("bias_x", "bias_y"), matters=threshold("gyro_bias"))],
-        linear=("bias_x", "bias_y"))
+        candidates=[Candidate("gyro_bias", ("bias_x", "bias_y"), matters=threshold("gyro_bias")),
+                    Candidate("gyro_lag", ("tau",), physical=_positive_lag, matters=threshold("gyro_lag"))],
+        linear=("bias_x", "bias_y", "tau"))
     return g, gp
 
 
@@ -228,12 +234,92 @@ class FlowGroupState:
         return [none, none, on, on]
 
 
+def _positive_lag(p: dict[str, float]) -> str | None:
+    return "a gyro ahead of the attitude (negative lag) is not a filter" if p["tau"] <= 0 else None
+
+
+def _positive_form_drag(p: dict[str, float]) -> str | None:
+    return "a negative form drag (the air pushing the vehicle along) is not physical" if p["c"] <= 0 else None
+
+
 def _positive_drag(p: dict[str, float]) -> str | None:
     return "a negative drag (the air pushing the vehicle along) is not physical" if p["b"] <= 0 else None
 
 
-def flow_group(data: FlightData, cfg: Config) -> tuple[Group, FlowProblem, FlowGroupState]:
-    fp = FlowProblem(data, mass_kg=cfg.airframe.mass_kg, gravity_m_s2=cfg.airframe.gravity_m_s2)
+#: crossover of the rotation the flow is compared with: the attitude estimate below, the integrated
+#: gyro above (Hz)
+ROTATION_CROSSOVER_HZ = 1.0
+
+
+def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0) -> tuple[np.ndarray, np.ndarray] | None:
+    """(pitch, roll) for the flow's rotation: the integrated gyro above ``ROTATION_CROSSOVER_HZ``
+    and the attitude estimate below it (a complementary filter, zero phase: fused = G + LP(att - G)
+    with G the gyro's integral per segment, so the two parts add up to the attitude wherever the
+    two sources agree).
+
+    Why: an attitude estimate carries its own noise (white or coloured, an EKF output) and is
+    smoothed at high frequency; the flow sees the true rotation. Compared with the noisy attitude,
+    the flow's residual holds the attitude's noise, and every rotation regressor built from the same
+    attitude holds it too: errors in variables, read as a rotation gain, a delay or a lever arm.
+    The gyro has the high-frequency rotation; a bias becomes a constant after the high-pass (gone
+    in every difference); a gyro low-pass (``gyro_lag`` from the gyro group) is undone first,
+    gyro + tau gyro'. None when the gyro is not recorded at the frame rate (then the attitude)."""
+    if np.mean(data.gyro_rec) < 0.75:
+        return None
+    from scipy import signal as sg
+
+    fs = 1.0 / data.frame_s
+    b, a = sg.butter(2, ROTATION_CROSSOVER_HZ / (0.5 * fs))
+    out = []
+    for ang, gyr in ((data.pitch_rad, data.gyro_y_rad_s), (data.roll_rad, data.gyro_x_rad_s)):
+        fused = np.array(ang, dtype=float)
+        for a0, b0 in data.segments():
+            if b0 - a0 < 30:
+                continue
+            t = data.t_s[a0:b0]
+            g = gyr[a0:b0]
+            if gyro_lag_s > 0:
+                g = g + gyro_lag_s * np.gradient(g, t)
+            G = np.concatenate([[0.0], np.cumsum(0.5 * (g[1:] + g[:-1]) * np.diff(t))])
+            fused[a0:b0] = G + sg.filtfilt(b, a, ang[a0:b0] - G)
+        out.append(fused)
+    return out[0], out[1]
+
+
+#: a lever arm is told from a rotation gain only when 1/height varies by this much (coefficient of
+#: variation over the flight): at one height rz / h is a constant, the same as a gain
+LEVER_ARM_MIN_CV = 0.1
+
+
+def lever_arm_observable(data: FlightData) -> bool:
+    """Whether the flight's heights vary enough to tell ``flow_lever_arm`` from ``flow_rotation_gain``."""
+    inv = 1.0 / data.range_m[np.isfinite(data.range_m) & (data.range_m > 0)]
+    return bool(len(inv) > 1 and np.std(inv) >= LEVER_ARM_MIN_CV * np.mean(inv))
+
+
+def _flow_noise(fp: FlowProblem) -> float:
+    """Robust scale of the nominal flow-geometry residual (both axes), rad."""
+    e = fp.flow_residual(NOMINAL)
+    x = e.ravel()
+    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else math.inf
+
+
+def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0) -> tuple[Group, FlowProblem, FlowGroupState]:
+    """The flow group, its rotation taken from the source that explains the recorded flow better:
+    the attitude estimate, or the gyro fused with it (``rotation_angles``). The flow sees the true
+    rotation, so the source nearer the truth leaves the smaller nominal residual; which one was
+    used goes to ``data.notes``."""
+    kw = dict(mass_kg=cfg.airframe.mass_kg, gravity_m_s2=cfg.airframe.gravity_m_s2)
+    fp = FlowProblem(data, **kw)
+    fused = rotation_angles(data, gyro_lag_s)
+    if fused is not None:
+        fp_fused = FlowProblem(data, rotation_angles=fused, **kw)
+        n_att, n_fused = _flow_noise(fp), _flow_noise(fp_fused)
+        if n_fused < n_att:
+            fp = fp_fused
+            data.notes.append(f"the flow's rotation from the gyro above {ROTATION_CROSSOVER_HZ:g} Hz and the attitude "
+                              f"below (it explains the flow better than the attitude alone: residual "
+                              f"{n_fused:.3g} against {n_att:.3g} rad)")
     state = FlowGroupState(fp)
 
     def residuals(p: np.ndarray) -> list[np.ndarray]:
@@ -245,12 +331,12 @@ def flow_group(data: FlightData, cfg: Config) -> tuple[Group, FlowProblem, FlowG
     tf = data.t_s[fp.flow.idx].ravel() if len(fp.flow.idx) else np.zeros(0)
     tw = 0.5 * (fp.force.t_start_s + fp.force.t_end_s)
     a_min = float(np.nanmin(data.range_m))
-    lower = np.array([0.3, 0.3, -math.pi / 2, -0.1, -1.0, -5.0, -50.0, -50.0, 0.3])
-    upper = np.array([3.0, 3.0, math.pi / 2, 0.3, a_min - 0.05, 10.0, 50.0, 50.0, 3.0])
+    lower = np.array([0.3, 0.3, -math.pi / 2, -0.1, -1.0, -5.0, -50.0, -50.0, 0.3, -5.0, -0.5])
+    upper = np.array([3.0, 3.0, math.pi / 2, 0.3, a_min - 0.05, 10.0, 50.0, 50.0, 3.0, 10.0, 0.5])
     assert len(lower) == len(PARAMS)
     g = Group(
         name="flow", params=PARAMS, nominal=NOMINAL.copy(),
-        steps=np.array([1e-3, 1e-3, 1e-3, 1e-3, 2e-3, 1e-2, 1e-2, 1e-2, 1e-3]), lower=lower, upper=upper,
+        steps=np.array([1e-3, 1e-3, 1e-3, 1e-3, 2e-3, 1e-2, 1e-2, 1e-2, 1e-3, 1e-2, 1e-3]), lower=lower, upper=upper,
         channels=("flow_x", "flow_y", "force_x", "force_y"), units=("rad", "rad", "N", "N"),
         floors=(max(data.flow_resolution_rad, 1e-5),) * 2 + (1e-3, 1e-3), residuals=residuals,
         row_times=[tf, tf, tw, tw],
@@ -261,7 +347,9 @@ def flow_group(data: FlightData, cfg: Config) -> tuple[Group, FlowProblem, FlowG
             ("flow_rotation_gain", ("gain",), None),
             ("range_offset", ("offset",), None),
             ("linear_drag", ("b",), _positive_drag),
-            ("wind_force", ("fx", "fy"), None))],
-        linear=("b", "fx", "fy"), search=state.search, state=state.as_dict, searched_effect="wind_force",
+            ("quadratic_drag", ("c",), _positive_form_drag),
+            ("flow_lever_arm", ("rz",), None),
+            ("wind_force", ("fx", "fy"), None)) if e != "flow_lever_arm" or lever_arm_observable(data)],
+        linear=("b", "fx", "fy", "c"), search=state.search, state=state.as_dict, searched_effect="wind_force",
         null_pvalue=state.null_pvalue, active_rows=state.active_rows)
     return g, fp, state
