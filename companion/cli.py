@@ -15,10 +15,10 @@ from companion.errors import run_command
 PROFILES = ("paper", "ardupilot", "px4")
 
 
-def _add_common(p: argparse.ArgumentParser) -> None:
+def _add_common(p: argparse.ArgumentParser, *, detected_from: str = "the recording") -> None:
     p.add_argument("--config", help="parameter set (TOML); default configs/paper.toml (Table VI)")
     p.add_argument("--profile", choices=PROFILES,
-                   help="sensor message convention (CONVENTIONS.md); default: detected from the recording")
+                   help=f"sensor message convention (CONVENTIONS.md); default: detected from {detected_from}")
 
 
 def _add_recording(p: argparse.ArgumentParser) -> None:
@@ -37,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--connect", required=True,
                      help="pymavlink URL: udpout:127.0.0.1:14550, udpin:0.0.0.0:14550, tcp:HOST:PORT, "
                           "/dev/ttyUSB0,921600")
-    _add_common(run)
+    _add_common(run, detected_from="the vehicle's messages before taking control")
     run.add_argument("--arm", action="store_true", help="switch to GUIDED_NOGPS and arm (simulators only)")
     run.add_argument("--setpoint", help="constant body-frame velocity setpoint VX,VY in m/s")
     run.add_argument("--tlog", help="record everything sent and received to this .tlog")

@@ -813,6 +813,12 @@ class CompanionCore:
         vmax = self.cfg.companion.max_speed_m_s
         self.setpoint_m_s = (min(max(vx_m_s, -vmax), vmax), min(max(vy_m_s, -vmax), vmax))
 
+    def set_profile(self, profile: Profile) -> None:
+        """Bind the core to ``profile`` once a live link has told which it is (before any flow
+        frame was stepped: gyro, range and attitude samples do not depend on it)."""
+        self.profile = profile
+        self.gyro_source = self.options.resolved_gyro(profile)
+
     def set_engaged(self, engaged: bool) -> None:
         """Whether the vehicle is in the companion's mode (GUIDED_NOGPS). While not engaged the
         steps hold level and the integrator and filter are reset; re-engaging starts afresh."""

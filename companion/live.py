@@ -4,6 +4,9 @@ It wraps the same ``CompanionCore`` (through ``companion.inbound.MessageRouter``
 ``companion.outbound`` messages the in-process scenarios use, so a lockstep run over UDP
 reproduces them frame for frame. What only a live loop needs lives here:
 
+- the sensor profile: ``--profile``, or detected from the vehicle's first messages before
+  taking control (``profiles.LiveProfileDetector``: the OPTICAL_FLOW ``time_usec`` unit against
+  the vehicle's other clocks, OPTICAL_FLOW_RAD, the flow content), printed with the reason;
 - the link: wait for the vehicle's HEARTBEAT, ask for the streams with SET_MESSAGE_INTERVAL,
   send our HEARTBEAT (component 191) at 1 Hz, and with ``--arm`` switch to GUIDED_NOGPS and arm
   (without it, wait for the pilot; we take control only while armed in GUIDED_NOGPS, with the
@@ -51,7 +54,7 @@ from companion.controller import PiState
 from companion.core import CROSS_FRAME_CAUSES, CompanionCore, HoldCause, StepOutput
 from companion.errors import LinkError, UsageError
 from companion.inbound import MessageRouter, gyro_time_s, scalar_flow
-from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, Profile
+from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, LiveProfileDetector, Profile
 from companion.tlog_writer import TlogWriter
 
 mav = link.mav
@@ -63,6 +66,8 @@ HEARTBEAT_TIMEOUT_S = 3.0
 #: a flow frame more than this much older than the last one is a vehicle reboot (s)
 REBOOT_JUMP_S = 1.0
 COMMAND_RETRY_S = 1.0
+#: wall-clock seconds after the vehicle is heard before "profile still unknown" is said
+PROFILE_WARN_S = 5.0
 COMMAND_TRIES = 5
 STATUS_PERIOD_TTY_S = 0.25
 STATUS_PERIOD_LOG_S = 5.0
@@ -206,13 +211,16 @@ class Commander:
 class LiveCompanion:
     """The companion's live loop over one pymavlink connection (see the module docstring)."""
 
-    def __init__(self, cfg: Config, profile: Profile, conn: Any, *, url: str = "", arm: bool = False,
+    def __init__(self, cfg: Config, profile: Profile | None, conn: Any, *, url: str = "", arm: bool = False,
                  setpoint_m_s: tuple[float, float] | None = None, tlog: str | None = None,
                  vehicle_sysid: int | None = None, quiet: bool = False,
                  clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time,
                  out: Callable[[str], None] | None = None) -> None:
         self.cfg = cfg
-        self.profile = profile
+        #: None: detect it from the vehicle's messages (``LiveProfileDetector``) before taking
+        #: control; until then the core runs on a provisional profile and steps no flow frame
+        self.detector = LiveProfileDetector() if profile is None else None
+        self.profile = profile if profile is not None else Profile.PAPER
         self.conn = conn
         self.url = url
         self.arm = arm
@@ -220,8 +228,8 @@ class LiveCompanion:
         self.wall = wall
         self.quiet = quiet
         self.out = out or (lambda text: print(text, flush=True))
-        self.core = CompanionCore(cfg, profile)
-        self.router = MessageRouter(self.core, profile, vehicle_sysid=vehicle_sysid)
+        self.core = CompanionCore(cfg, self.profile)
+        self.router = MessageRouter(self.core, self.profile, vehicle_sysid=vehicle_sysid)
         self.want_sysid = vehicle_sysid
         self.vehicle_compid = 1
         self.base_setpoint = setpoint_m_s or (0.0, 0.0)
@@ -258,6 +266,9 @@ class LiveCompanion:
         self._next_wall_hold = -math.inf
         self._flow_times: deque[float] = deque(maxlen=50)
         self._link_lost_reported = False
+        self._vehicle_heard_wall: float | None = None
+        self._profile_warned = False
+        self._requested_flow: set[str] = set()
         self._tty = sys.stdout.isatty()
         #: UDP: read whole datagrams (an unfinished packet at a datagram's end is dropped, not
         #: joined to the next datagram); their messages wait here
@@ -321,10 +332,16 @@ class LiveCompanion:
                          f"{'armed' if link.heartbeat_armed(msg) else 'disarmed'})")
         if self.stop_requested:
             return
-        for name in (FLOW_MESSAGE[self.profile], "RAW_IMU", "DISTANCE_SENSOR", "ATTITUDE"):
-            mid = getattr(mav, f"MAVLINK_MSG_ID_{name}")
-            self.commander.add(f"stream {name} at {1 / self.T:g} Hz", mav.MAV_CMD_SET_MESSAGE_INTERVAL, mid,
-                               round(self.T * 1e6), required=False)
+        self._vehicle_heard_wall = self.clock()
+        flow = FLOW_MESSAGE[self.profile]
+        if self.detector is None:
+            self.out(f"flowhold: sensor profile {self.profile.value} (given)")
+        elif self.detector.result is None:
+            self.out("flowhold: sensor profile: detecting it from the vehicle's messages (or give --profile)")
+            # until the flow tells: the flow message of the vehicle's kind (PX4 sends OPTICAL_FLOW_RAD)
+            flow = "OPTICAL_FLOW_RAD" if self.detector.autopilot == mav.MAV_AUTOPILOT_PX4 else "OPTICAL_FLOW"
+        for name in (flow, "RAW_IMU", "DISTANCE_SENSOR", "ATTITUDE"):
+            self._request_stream(name)
         if self.arm:
             if self.mode != link.GUIDED_NOGPS:
                 self.commander.add("switch to GUIDED_NOGPS", mav.MAV_CMD_DO_SET_MODE,
@@ -333,6 +350,31 @@ class LiveCompanion:
                 self.commander.add("arm", mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         else:
             self.out("flowhold: waiting for the pilot to arm in GUIDED_NOGPS")
+
+    def _request_stream(self, name: str) -> None:
+        if name in FLOW_MESSAGE.values():
+            self._requested_flow.add(name)
+        mid = getattr(mav, f"MAVLINK_MSG_ID_{name}")
+        self.commander.add(f"stream {name} at {1 / self.T:g} Hz", mav.MAV_CMD_SET_MESSAGE_INTERVAL, mid,
+                           round(self.T * 1e6), required=False)
+
+    @property
+    def profile_known(self) -> bool:
+        return self.detector is None or self.detector.result is not None
+
+    def _detect(self, msg: Any) -> None:
+        """Feed the profile detector a vehicle message; bind the profile once it can tell."""
+        assert self.detector is not None
+        found = self.detector.observe(msg)
+        if found is None:
+            return
+        profile, why = found
+        self.profile = profile
+        self.router.profile = profile
+        self.core.set_profile(profile)
+        self.out(f"flowhold: sensor profile {profile.value} (detected: {why})")
+        if FLOW_MESSAGE[profile] not in self._requested_flow:
+            self._request_stream(FLOW_MESSAGE[profile])
 
     def _check_open(self) -> None:
         """LinkError when a stream link (TCP) has been closed by the other end."""
@@ -378,6 +420,8 @@ class LiveCompanion:
         vehicle = self._from_vehicle(msg)
         if vehicle:
             self.last_vehicle_wall = now
+            if not self.profile_known:
+                self._detect(msg)
         if mtype == "HEARTBEAT":
             if vehicle:
                 self.last_heartbeat_wall = now
@@ -399,6 +443,11 @@ class LiveCompanion:
             if self.router.last_setpoint_time is not None:
                 self.gcs_setpoint = self.core.setpoint_m_s
                 self.gcs_setpoint_wall = now
+        elif mtype in ("OPTICAL_FLOW", "OPTICAL_FLOW_RAD") and not self.profile_known:
+            if vehicle:
+                self.counters["flow frames before the profile was known"] += 1
+            else:
+                self.counters["sensor data from another system"] += 1
         elif mtype == FLOW_MESSAGE[self.profile]:
             if vehicle:
                 self._on_flow(msg, now)
@@ -427,7 +476,7 @@ class LiveCompanion:
                                                     msg.get_srcSystem(), msg.get_srcComponent()))
 
     def _update_control(self, now: float) -> None:
-        want = self.armed and self.mode == link.GUIDED_NOGPS
+        want = self.armed and self.mode == link.GUIDED_NOGPS and self.profile_known
         if want and not self.in_control:
             self.in_control = True
             self.core.pi.state = PiState()
@@ -539,6 +588,12 @@ class LiveCompanion:
 
     def _watchdog(self, now: float) -> None:
         """Wall-clock failsafe: no flow frame for flow_timeout_s -> level commands at the frame rate."""
+        if not self.profile_known and not self._profile_warned and self._vehicle_heard_wall is not None \
+                and now - self._vehicle_heard_wall > PROFILE_WARN_S:
+            self._profile_warned = True
+            assert self.detector is not None
+            self.out(f"flowhold: warning: sensor profile still unknown after {PROFILE_WARN_S:g} s "
+                     f"({self.detector.n_flow} OPTICAL_FLOW, none telling); not taking control: give --profile")
         lost = now - self.last_heartbeat_wall > HEARTBEAT_TIMEOUT_S
         if lost != self._link_lost_reported:
             self._link_lost_reported = lost
@@ -568,7 +623,7 @@ class LiveCompanion:
         hb = now - self.last_heartbeat_wall
         est = f"{s.vx_m_s:+.2f} {s.vy_m_s:+.2f}" if s is not None and not self.last_held else "  --    -- "
         t = f"{s.time_s:7.2f}" if s is not None else "    --"
-        state = "CONTROL" if self.in_control else "standby"
+        state = "CONTROL" if self.in_control else ("standby" if self.profile_known else "standby (profile?)")
         hold = f" HOLD: {self.monitor.cause.value}" if self.monitor.cause is not HoldCause.NONE else ""
         roll, pitch = (math.degrees(a) for a in self.last_cmd_rad)
         n_rejected = sum(self.rejected().values())
@@ -647,7 +702,7 @@ def run_cli(args: Any) -> int:
     if args.vehicle_sysid is not None and not 1 <= args.vehicle_sysid <= 255:
         raise UsageError(f"--vehicle-sysid must be in 1..255, got {args.vehicle_sysid}")
     cfg = load_config(args.config)
-    profile = Profile(args.profile or "paper")
+    profile = Profile(args.profile) if args.profile else None
     key = link.signing_key(args.signing_key) if args.signing_key else None
     link.check_url(args.connect)
     conn = link.open_connection(args.connect, source_system=args.vehicle_sysid or 1,

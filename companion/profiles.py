@@ -209,3 +209,109 @@ def detect_profile(rec: Recording) -> tuple[str, str]:
     if reasons:
         return Profile.ARDUPILOT.value, "; ".join(reasons)
     return Profile.PAPER.value, "OPTICAL_FLOW counts in flow_x/y with time_usec in microseconds"
+
+
+#: messages whose time field gives a live vehicle's clock, and the field's scale to microseconds
+_CLOCK_FIELDS = {"RAW_IMU": ("time_usec", 1.0), "HIGHRES_IMU": ("time_usec", 1.0),
+                 "SCALED_IMU": ("time_boot_ms", 1e3), "ATTITUDE": ("time_boot_ms", 1e3),
+                 "DISTANCE_SENSOR": ("time_boot_ms", 1e3)}
+#: OPTICAL_FLOW time_usec / the vehicle's clock in µs: microseconds in [lo, hi], milliseconds in [lo, hi] / 1000
+_SAME_UNIT = (0.5, 2.0)
+#: the vehicle's clock (µs) must be past this for the ratio to mean anything (20 ms = one frame)
+_MIN_CLOCK_US = 10_000.0
+#: flow messages after which the content alone decides, when no clock has told the unit
+CONTENT_FRAMES = 25
+
+
+def autopilot_name(autopilot: int | None) -> str:
+    """MAV_AUTOPILOT's short name (``ArduPilot``, ``PX4``, ``GENERIC``, ...)."""
+    if autopilot is None:
+        return "unknown"
+    if autopilot == 3:  # MAV_AUTOPILOT_ARDUPILOTMEGA
+        return "ArduPilot"
+    if autopilot == 12:  # MAV_AUTOPILOT_PX4
+        return "PX4"
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    entry = mav.enums["MAV_AUTOPILOT"].get(int(autopilot))
+    return entry.name.removeprefix("MAV_AUTOPILOT_") if entry is not None else str(autopilot)
+
+
+class LiveProfileDetector:
+    """Which profile a live vehicle speaks, from its messages: ``detect_profile``'s rules for a link.
+
+    ``observe(msg)`` with each message from the vehicle; it returns ``(profile, reason)`` once it
+    can tell (and ``result`` keeps it), None before.
+
+    - OPTICAL_FLOW_RAD before any OPTICAL_FLOW: px4.
+    - OPTICAL_FLOW: its ``time_usec`` against the vehicle's own clock in the same stream (the latest
+      RAW_IMU / HIGHRES_IMU ``time_usec``, or SCALED_IMU / ATTITUDE / DISTANCE_SENSOR
+      ``time_boot_ms``): the same number of microseconds is paper; a thousandth of it is
+      ardupilot (ArduPilot fills ``time_usec`` with milliseconds). One frame past boot time
+      0.01 s is enough.
+    - When the times cannot tell (boot time 0, or no clock): ``ground_distance`` -1 is paper (the
+      flow sensor has no range of its own; ArduPilot sends its height above ground, 0 without one).
+    - Without a clock to compare, after ``CONTENT_FRAMES`` flow messages: ``flow_rate_x/y`` moving
+      while the integer ``flow_x/y`` stay zero is ardupilot (ArduPilot's truncated rad/s); counts that
+      move are paper.
+    - The HEARTBEAT's autopilot (MAV_AUTOPILOT_ARDUPILOTMEGA, PX4, ...) is named in the reason but
+      decides nothing alone: the project's simulated vehicle presents itself as ArduPilot in
+      every profile.
+    """
+
+    def __init__(self) -> None:
+        self.autopilot: int | None = None
+        self.clock_us: float | None = None
+        self.clock_from = ""
+        self.n_flow = 0
+        self.n_rates_only = 0
+        self.n_counts = 0
+        self.result: tuple[Profile, str] | None = None
+
+    def _decide(self, profile: Profile, why: str) -> tuple[Profile, str]:
+        self.result = (profile, f"{why}; HEARTBEAT autopilot {autopilot_name(self.autopilot)}")
+        return self.result
+
+    def observe(self, msg: Any) -> tuple[Profile, str] | None:
+        if self.result is not None:
+            return self.result
+        mtype = msg.get_type()
+        if mtype == "HEARTBEAT":
+            self.autopilot = int(msg.autopilot)
+        elif mtype in _CLOCK_FIELDS:
+            name, scale = _CLOCK_FIELDS[mtype]
+            self.clock_us = float(getattr(msg, name)) * scale
+            self.clock_from = f"{mtype} {name}"
+        elif mtype == "OPTICAL_FLOW_RAD" and self.n_flow == 0:
+            return self._decide(Profile.PX4, "flow arrives as OPTICAL_FLOW_RAD (integrated radians)")
+        elif mtype == "OPTICAL_FLOW":
+            return self._on_flow(msg)
+        return None
+
+    def _on_flow(self, msg: Any) -> tuple[Profile, str] | None:
+        self.n_flow += 1
+        t = float(msg.time_usec)
+        if self.clock_us is not None and self.clock_us >= _MIN_CLOCK_US and t > 0:
+            ratio = t / self.clock_us
+            lo, hi = _SAME_UNIT
+            clock = f"{self.clock_from} {self.clock_us:.0f} us"
+            if lo <= ratio <= hi:
+                return self._decide(Profile.PAPER, f"OPTICAL_FLOW time_usec {t:.0f} against {clock}: microseconds")
+            if lo * 1e-3 <= ratio <= hi * 1e-3:
+                return self._decide(Profile.ARDUPILOT, f"OPTICAL_FLOW time_usec {t:.0f} against {clock}: "
+                                                       "milliseconds (ArduPilot's convention)")
+        if float(msg.ground_distance) == -1.0:
+            return self._decide(Profile.PAPER, "OPTICAL_FLOW ground_distance -1 (no range of its own: the paper's "
+                                               "convention; ArduPilot sends its height)")
+        counts = abs(float(msg.flow_x)) + abs(float(msg.flow_y))
+        rates = abs(float(msg.flow_rate_x)) + abs(float(msg.flow_rate_y))
+        if counts > 0:
+            self.n_counts += 1
+        elif math.isfinite(rates) and rates > 0:
+            self.n_rates_only += 1
+        if self.n_flow >= CONTENT_FRAMES:
+            if self.n_rates_only > self.n_flow // 2 and self.n_counts < self.n_rates_only // 2:
+                return self._decide(Profile.ARDUPILOT, "flow_rate_x/y carry the flow while flow_x/y are mostly zero")
+            if self.n_counts > self.n_flow // 4 and self.n_rates_only == 0:
+                return self._decide(Profile.PAPER, "OPTICAL_FLOW counts move in flow_x/y")
+        return None

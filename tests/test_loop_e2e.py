@@ -396,6 +396,32 @@ def test_other_profiles_through_the_loop_match_fly(tmp_path, paper_cfg, profile)
     assert np.degrees(run["pitch_cmd_rad"].min()) == pytest.approx(-20.0, abs=1e-4)
 
 
+def test_companion_detects_the_vehicles_profile_before_taking_control(tmp_path, paper_cfg):
+    """Issue 14: without ``--profile`` the companion assumed paper and sat in "HOLD flow stale" for the
+    whole flight against an ArduPilot-convention vehicle. It now tells the profile from the vehicle's
+    first frames (the flow's time_usec in ms against the vehicle's clock), says which and why, and
+    then flies the step exactly as fly() does in that profile."""
+    import dataclasses
+
+    vt = tmp_path / "vehicle.tlog"
+    with Procs(tmp_path) as procs:
+        veh, port = procs.vehicle("--lockstep", "--scenario", "step", "--duration", "5.4", "--profile", "ardupilot",
+                                  "--tlog", str(vt))
+        comp = procs.companion(port, "--arm", "--quiet")
+        assert veh.wait(timeout_s=300) == 0, veh.text()
+        assert comp.stop() == 0
+    log = comp.text()
+    assert "flowhold: sensor profile ardupilot (detected: OPTICAL_FLOW time_usec" in log, log
+    assert "milliseconds" in log and "HEARTBEAT autopilot ArduPilot" in log
+    assert log.index("sensor profile ardupilot") < log.index("flowhold: in control")
+    assert "HOLD" not in log.split("flowhold: in control")[1].split("HOLD link lost")[0]
+    ref = fly(paper_cfg, dataclasses.replace(SCENARIOS["step"], duration_s=5.4), profile=Profile.ARDUPILOT)
+    run = recording_run(vt, name="step")
+    for col, tol in (("vx_m_s", F32_VEL_TOL_M_S), ("vy_m_s", F32_VEL_TOL_M_S), ("pitch_cmd_rad", 1e-6),
+                     ("roll_cmd_rad", 1e-6)):
+        np.testing.assert_allclose(run[col], ref[col], rtol=0, atol=tol, err_msg=col)
+
+
 def test_gcs_setpoint_is_held_then_ramps_to_the_constant_one(tmp_path, paper_cfg):
     """A GCS setpoint that stops arriving: held for companion.setpoint_timeout_s (1 s), then a
     linear ramp back to --setpoint over another second (decayed_setpoint), on the wall clock."""
