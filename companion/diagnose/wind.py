@@ -168,11 +168,12 @@ def null_pvalue(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, 
     """Tail probability of the window search's statistic (the largest sum of squares one force
     window explains) under the null of no force, calibrated on the recording itself.
 
-    ``e`` (2, n_windows) is the force residual without the force. The null residual is ``e`` with
-    the best window's mean shift removed; its blocks of ``NULL_BLOCK_S`` get random signs (a wild
-    block bootstrap: zero-mean noise with the residual's own spread, correlation and outliers,
-    and no force) and the same search runs on each replicate. A penalised likelihood-ratio test
-    whose penalty is the scan over every window, measured rather than assumed."""
+    ``e`` (2, n_windows) is the force residual without the force. The null is zero-mean noise with
+    the residual's own long-run variance per axis (the residual with the best window's shift
+    removed; a Newey-West estimate over ``NULL_BLOCK_S`` and at least three of its correlation
+    times, so slow turbulence, a force that lasts seconds, counts at its full weight), and the same
+    search runs on each replicate: a penalised likelihood-ratio test whose penalty, the scan over
+    every window, is measured rather than assumed."""
     nw = e.shape[1]
     if nw < 4:
         return 1.0
@@ -181,7 +182,7 @@ def null_pvalue(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, 
     tm0, tm1 = t_s[k0], t_s[k1]
     pool = max(1, math.ceil(nw / MAX_NULL))
     m = nw // pool
-    if m < 2:
+    if m < 4:
         return 1.0
     ep = e[:, : m * pool].reshape(2, m, pool).sum(axis=2)
     wp = w[: m * pool].reshape(m, pool).sum(axis=1)
@@ -190,18 +191,31 @@ def null_pvalue(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, 
     observed, j1, j2 = _scan(ep, wp, b0, b1, min_s)
     if observed <= 0:
         return 1.0
-    # the null residual: the best window's mean shift removed
+    # the null residual per unit weight: the best window's shift removed
+    use = wp > 0
+    x = np.zeros_like(ep)
+    x[:, use] = ep[:, use] / wp[use]
     shift = ep[:, j1:j2].sum(axis=1) / max(float(wp[j1:j2].sum()), 1e-12)
-    r = ep.copy()
-    r[:, j1:j2] -= shift[:, None] * wp[None, j1:j2]
-    span = float(np.median(b1 - b0)) if m else 1.0
-    per = max(1, int(round(NULL_BLOCK_S / max(span, 1e-6))))
-    blocks = np.arange(m) // per
-    nb = int(blocks[-1]) + 1
+    x[:, j1:j2] -= shift[:, None]
+    x = x[:, use]
+    span = float(np.median(b1 - b0))
+    lag_s = NULL_BLOCK_S
+    rho = float(np.mean([np.corrcoef(xi[1:], xi[:-1])[0, 1] for xi in x if np.std(xi) > 0] or [0.0]))
+    if 0.0 < rho < 1.0:
+        lag_s = max(lag_s, -3.0 * span / math.log(rho))
+    L = min(max(1, int(round(lag_s / max(span, 1e-6)))), x.shape[1] - 1)
+    lr_var = np.zeros(2)
+    for i in range(2):
+        xi = x[i] - x[i].mean()
+        n = len(xi)
+        v = float(xi @ xi) / n
+        for k in range(1, L + 1):
+            v += 2.0 * (1.0 - k / (L + 1)) * float(xi[k:] @ xi[:-k]) / n
+        lr_var[i] = max(v, float(xi @ xi) / n, 1e-300)
     rng = np.random.default_rng(seed)
     exceed = 0
+    sd = np.sqrt(lr_var)[:, None] * np.sqrt(wp)[None, :]  # a pooled sum of wp windows
     for _ in range(reps):
-        sign = rng.choice((-1.0, 1.0), size=nb)[blocks]
-        g, _a, _b = _scan(r * sign, wp, b0, b1, min_s)
+        g, _a, _b = _scan(rng.standard_normal(ep.shape) * sd, wp, b0, b1, min_s)
         exceed += g >= observed
     return (1 + exceed) / (reps + 1)
