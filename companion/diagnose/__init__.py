@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -69,9 +70,24 @@ def run_cli(args: argparse.Namespace) -> int:
     rec = load_recording(args.recording)
     if not has_commands(rec) and ("OPTICAL_FLOW" in rec or "OPTICAL_FLOW_RAD" in rec):
         return _sensor_mode(args)
-    from companion.diagnose.diagnosis import diagnose
+    from companion.diagnose.diagnosis import STAGES, diagnose
 
-    diag = diagnose(rec, cfg, profile=args.profile)
+    bar = None
+    if sys.stderr.isatty():  # a progress bar on a terminal only; quiet in pipes, logs and CI
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(STAGES), desc="diagnose", unit="stage", leave=False, file=sys.stderr)
+
+    def progress(stage: str) -> None:
+        if bar is not None:
+            bar.set_postfix_str(stage)
+            bar.update(1)
+
+    try:
+        diag = diagnose(rec, cfg, profile=args.profile, progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
     report = diag.report
     report.notes.append(f"diagnosed in {time.perf_counter() - t_start:.1f} s")
     if args.json:

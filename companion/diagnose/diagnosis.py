@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -222,28 +223,37 @@ def _fit_group(g: Group, settings: Settings, t0: float) -> GroupResult:
     return GroupResult(g, sel, chosen, final, evidence, r_nom, r_fin)
 
 
+#: the stages ``diagnose`` reports to its ``progress`` callback, in order
+STAGES = ("signals", "attitude loop", "gyro", "flow and force", "report")
+
+
 def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
-             settings: Settings | None = None) -> Diagnosis:
-    """Diagnose a closed-loop recording against the nominal model ``cfg`` (see the package docs)."""
+             settings: Settings | None = None, progress: Callable[[str], None] | None = None) -> Diagnosis:
+    """Diagnose a closed-loop recording against the nominal model ``cfg`` (see the package docs).
+    ``progress(stage)`` is called as each of ``STAGES`` is done (a progress bar)."""
     settings = settings or Settings()
+    step = progress or (lambda _stage: None)
     timings: dict[str, float] = {}
     t = time.perf_counter()
     data = extract(rec, cfg, profile)
     timings["extract_s"] = time.perf_counter() - t
+    step(STAGES[0])
     t0 = float(data.t_s[0])
     ga, ap = attitude_group(data, cfg)
     gg, gp = gyro_group(data)
     results: dict[str, GroupResult] = {}
-    for g in (ga, gg):
+    for g, stage in ((ga, STAGES[1]), (gg, STAGES[2])):
         t = time.perf_counter()
         results[g.name] = _fit_group(g, settings, t0)
         timings[f"{g.name}_s"] = time.perf_counter() - t
+        step(stage)
     # the flow is compared with the rotation of the gyro above 1 Hz, undone of the lag found
     lag = float(results["gyro"].final.p[2]) if "gyro_lag" in results["gyro"].chosen else 0.0
     t = time.perf_counter()
     gf, fp, fstate = flow_group(data, cfg, gyro_lag_s=lag)
     results["flow"] = _fit_group(gf, settings, t0)
     timings["flow_s"] = time.perf_counter() - t
+    step(STAGES[3])
     ap.final_p = results["attitude"].final.p
     if "wind_force" in results["flow"].chosen:
         results["flow"].selector._search(results["flow"].final.p, None)
@@ -264,6 +274,7 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
         report.notes.extend(res.selector.notes)
     report.findings.sort(key=lambda f: (not f.significant, -(f.fit.improvement_pct if f.fit else 0.0)))
     report.headline = headline(report)
+    step(STAGES[4])
     timings["report_s"] = time.perf_counter() - t
     return Diagnosis(data, cfg, report, results, ap, gp, fp, fstate, timings)
 
