@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.errors import FlowholdError, RecordingError
+from companion.errors import FlowholdError, RecordingError, check_output, writing
 from companion.recording import MessageTable, Recording, load_recording
 
 #: an interval longer than this many times the stream's median interval is a gap
@@ -248,9 +248,12 @@ def _json_ready(x: Any) -> Any:
 
 def run_cli(args: argparse.Namespace) -> int:
     """``info``: print the summary of ``args.recording``; ``args.json``: also write it there."""
+    if getattr(args, "json", None):
+        check_output(args.json, "--json")
     rec = load_recording(args.recording, sensor_config=getattr(args, "sensor_config", None))
     summary = summarise(rec)
     print(format_summary(summary))
     if getattr(args, "json", None):
-        Path(args.json).write_text(json.dumps(_json_ready(summary), indent=2) + "\n")
+        with writing("--json", args.json):
+            Path(args.json).write_text(json.dumps(_json_ready(summary), indent=2) + "\n")
     return 0

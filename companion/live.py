@@ -45,14 +45,13 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from companion import link, outbound
 from companion.config import Config, load_config
 from companion.controller import PiState
 from companion.core import CROSS_FRAME_CAUSES, CompanionCore, HoldCause, StepOutput
-from companion.errors import LinkError, UsageError
+from companion.errors import LinkError, UsageError, check_output, output_error
 from companion.inbound import MessageRouter, gyro_time_s, scalar_flow
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, LiveProfileDetector, Profile
 from companion.tlog_writer import TlogWriter
@@ -701,6 +700,8 @@ def run_cli(args: Any) -> int:
         raise UsageError(f"--duration must be a positive number of seconds, got {args.duration}")
     if args.vehicle_sysid is not None and not 1 <= args.vehicle_sysid <= 255:
         raise UsageError(f"--vehicle-sysid must be in 1..255, got {args.vehicle_sysid}")
+    if args.tlog:
+        check_output(args.tlog, "--tlog")
     cfg = load_config(args.config)
     profile = Profile(args.profile) if args.profile else None
     key = link.signing_key(args.signing_key) if args.signing_key else None
@@ -710,13 +711,11 @@ def run_cli(args: Any) -> int:
     if key is not None:
         link.setup_signing(conn.mav, key)
     try:
-        if args.tlog:
-            Path(args.tlog).parent.mkdir(parents=True, exist_ok=True)
         live = LiveCompanion(cfg, profile, conn, url=args.connect, arm=args.arm, setpoint_m_s=setpoint,
                              tlog=args.tlog, vehicle_sysid=args.vehicle_sysid, quiet=args.quiet)
     except OSError as exc:
         conn.close()
-        raise UsageError(f"--tlog: cannot write {args.tlog}: {exc.strerror or exc}") from None
+        raise output_error("--tlog", args.tlog, exc) from None
 
     def request_stop(_signum: int, _frame: Any) -> None:
         live.stop_requested = True

@@ -71,7 +71,7 @@ from companion.core import (
     repeat_window,
     run_control,
 )
-from companion.errors import RecordingError
+from companion.errors import RecordingError, check_output, writing
 from companion.inbound import INT16_CLIP
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FlowColumns, Profile, detect_profile, flow_columns
 from companion.recording import (
@@ -656,6 +656,9 @@ def _options(args: argparse.Namespace, cfg: Config) -> EstimatorOptions:
 
 def run_cli(args: argparse.Namespace) -> int:
     """``python -m companion replay``: CSV (and plot) of the companion over a recording."""
+    check_output(args.csv, "--csv")
+    if args.plot:
+        check_output(args.plot, "--plot")
     cfg = load_config(args.config)
     rec = load_recording(args.recording, sensor_config=getattr(args, "sensor_config", None),
                          progress=sys.stderr.isatty())
@@ -666,7 +669,8 @@ def run_cli(args: argparse.Namespace) -> int:
         detected, why = detect_profile(rec)
         profile = Profile(detected)
     result = replay(rec, cfg, profile, _options(args, cfg))
-    names = write_csv(result, args.csv, progress=sys.stderr.isatty())
+    with writing("--csv", args.csv):
+        names = write_csv(result, args.csv, progress=sys.stderr.isatty())
     err = sys.stderr
     print(f"profile {profile.value} ({why}); gyro {result.gyro_source.value}"
           f"{'; tilt filter' if _options(args, cfg).tilt_filter else ''}", file=err)
@@ -681,7 +685,8 @@ def run_cli(args: argparse.Namespace) -> int:
     if args.plot:
         from companion.replay_plot import plot_replay
 
-        plot_replay(result, args.plot)
+        with writing("--plot", args.plot):
+            plot_replay(result, args.plot)
         print(f"plot -> {args.plot}", file=err)
     return 0
 

@@ -6,7 +6,7 @@ import argparse
 import json
 from collections.abc import Sequence
 
-from companion.errors import run_command
+from companion.errors import check_output, run_command, writing
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,19 +53,24 @@ def _scenario(args: argparse.Namespace) -> int:
     from companion.profiles import Profile
     from simvehicle.scenarios import figures, run_named
 
+    for flag, path in (("--tlog", args.tlog), ("--plot", args.plot), ("--json", args.json)):
+        if path and path != "-":
+            check_output(path, flag)
     cfg = load_config(args.config)
-    run = run_named(args.name, cfg, profile=Profile(args.profile), seed=args.seed, tlog=args.tlog)
+    with writing("--tlog", args.tlog or ""):
+        run = run_named(args.name, cfg, profile=Profile(args.profile), seed=args.seed, tlog=args.tlog)
     fig = figures(run, cfg)
     text = json.dumps(fig, indent=2)
     if args.json == "-":
         print(text)
     elif args.json:
-        with open(args.json, "w") as fh:
+        with writing("--json", args.json), open(args.json, "w") as fh:
             fh.write(text + "\n")
     if args.plot:
         from simvehicle.plots import plot_run
 
-        plot_run(run, args.plot)
+        with writing("--plot", args.plot):
+            plot_run(run, args.plot)
     if args.json != "-":
         print(_summary(fig))
         for label, p in (("recording", args.tlog), ("plot", args.plot), ("figures", args.json)):

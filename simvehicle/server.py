@@ -58,7 +58,7 @@ from companion.config import (
     load_config,
     with_effects,
 )
-from companion.errors import FlowholdError, LinkError, UsageError
+from companion.errors import LinkError, UsageError, check_output, output_error
 from companion.outbound import COMPANION_COMPONENT, VELOCITY_TYPE_MASK, quaternion_to_euler
 from companion.profiles import FLOW_MESSAGE, Profile
 from companion.tlog_writer import TlogWriter
@@ -809,7 +809,7 @@ class UdpVehicle:
             self.tlog = TlogWriter(tlog) if tlog else None
         except OSError as exc:
             self.sock.close()
-            raise FlowholdError(f"cannot write the recording {tlog}: {exc.strerror or exc}") from None
+            raise output_error("--tlog", tlog or "", exc) from None
         self.counters: Counter[str] = Counter()
         self._next_heartbeat = 0.0
         self._next_status = 0.0
@@ -1130,6 +1130,8 @@ def run_cli(args: Any) -> int:
         raise UsageError(f"--duration must be a positive number of seconds, got {args.duration}")
     if not 1 <= args.sysid <= 255:
         raise UsageError(f"--sysid must be in 1..255, got {args.sysid}")
+    if args.tlog:
+        check_output(args.tlog, "--tlog")
     cfg = load_config(args.config)
     scenario_name = getattr(args, "scenario", None)
     scenario = SCENARIOS[scenario_name] if scenario_name else None

@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import EFFECT_TYPES, Config, config_from_dict, read_toml
-from companion.errors import ConfigError
+from companion.errors import ConfigError, check_output, writing
 from simvehicle import fastsim
 from simvehicle.scenarios import SCENARIOS, figures
 
@@ -326,13 +326,14 @@ def run_cli(args: argparse.Namespace) -> int:
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {workers}")
     spec = load_sweep(args.sweep_config)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_output(args.out, "--out", folder=True)
     t0 = time.perf_counter()
     rows = run_sweep(spec, workers=workers)
     elapsed = time.perf_counter() - t0
-    write_csv(rows, out / "sweep.csv")
-    plot_sweep(rows, spec, out / "sweep.png")
+    with writing("--out", out / "sweep.csv"):
+        write_csv(rows, out / "sweep.csv")
+    with writing("--out", out / "sweep.png"):
+        plot_sweep(rows, spec, out / "sweep.png")
     n_flights = len(rows) * len(spec.scenarios)
     print(f"sweep {spec.title}: {len(rows)} rows ({' x '.join(map(str, spec.shape))} grid x {len(spec.seeds)} "
           f"seed(s)), {n_flights} flights in {elapsed:.1f} s on {workers} worker(s)")
