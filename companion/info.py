@@ -2,8 +2,9 @@
 
 Duration, every message type with its count, rate and senders, the largest gaps in each
 stream, the sensors the companion and the analysis tools need (CONVENTIONS.md, "Recordings"),
-what the reader had to skip, and which sensor profile fits. ``--json OUT`` writes the same
-summary as JSON. Times are seconds from the first record of the recording.
+what the reader had to skip, which sensor profile fits, and whose clock stamped the records
+(``recording_clock``: the wall clock of a link, or a simulator's clock). ``--json OUT`` writes the
+same summary as JSON. Times are seconds from the first record of the recording.
 """
 
 from __future__ import annotations
@@ -31,6 +32,19 @@ RATE_SPAN = 10
 STREAM_MIN_HZ = 0.5
 #: DISTANCE_SENSOR orientation that measures altitude (MAV_SENSOR_ROTATION_PITCH_270, down)
 DOWNWARD = 25
+
+#: the vehicle's time fields ``recording_clock`` compares record times with: (message, field, to s)
+CLOCK_FIELDS = (("ATTITUDE", "time_boot_ms", 1e-3), ("RAW_IMU", "time_usec", 1e-6),
+                ("LOCAL_POSITION_NED", "time_boot_ms", 1e-3), ("DISTANCE_SENSOR", "time_boot_ms", 1e-3),
+                ("SCALED_IMU", "time_boot_ms", 1e-3), ("HIGHRES_IMU", "time_usec", 1e-6))
+#: record and field intervals that agree to this (s) were stamped from the field's clock
+#: (headers carry whole microseconds); a link's arrivals jitter by far more
+CLOCK_TOL_S = 1e-5
+#: the share of intervals that must agree so for a simulator's clock (a reboot breaks one)
+CLOCK_AGREE = 0.95
+#: a vehicle time that runs this much faster than the record times: a lockstep or sped-up
+#: simulation recorded with wall-clock stamps
+CLOCK_FAST = 1.5
 
 #: sensor role -> the messages that fill it (CONVENTIONS.md)
 SENSORS: dict[str, tuple[str, ...]] = {
@@ -126,6 +140,52 @@ def sensors_found(rec: Recording, duration_s: float) -> dict[str, Any]:
     return found
 
 
+def recording_clock(rec: Recording) -> dict[str, Any]:
+    """Whose clock stamped the records: ``{"simulated": True|False|None, "reason": one line}``.
+
+    1. A STATUSTEXT saying "simulated clock" (the simulated vehicle sends it to each peer in
+       lockstep and speed-up, and the recordings of both keep it): simulated.
+    2. Otherwise the record times against the vehicle's own time field (``CLOCK_FIELDS``, its
+       most frequent sender): when ``CLOCK_AGREE`` of the intervals between records equal those
+       of the field to ``CLOCK_TOL_S``, the stamps are the vehicle's clock (a simulator's log:
+       the scenarios', the simulated vehicle's); a link's arrivals jitter. When the field runs
+       ``CLOCK_FAST`` times faster than the stamps, a simulation ran faster than real time and
+       was stamped with the wall clock: durations and rates here are wall-clock.
+    3. No time field: None.
+    """
+    from companion.tlog_writer import SIM_CLOCK_TEXT
+
+    if "STATUSTEXT" in rec:
+        for text in rec.tables["STATUSTEXT"]["text"]:
+            if SIM_CLOCK_TEXT in str(text):
+                return {"simulated": True, "reason": f"the recording says so: {str(text)!r}"}
+    for name, field_name, scale in CLOCK_FIELDS:
+        if name not in rec or field_name not in rec.tables[name].fields:
+            continue
+        tab = rec.tables[name]
+        senders = _senders(tab)
+        sysid, compid = max(senders, key=lambda sc: len(tab.from_sender(*sc)))
+        sub = tab.from_sender(sysid, compid)
+        if len(sub) < 20:
+            continue
+        d_log = np.diff(np.asarray(sub.t_s, dtype=np.float64))
+        d_field = np.diff(np.asarray(sub[field_name], dtype=np.float64) * scale)
+        agree = float(np.mean(np.abs(d_log - d_field) <= CLOCK_TOL_S))
+        where = f"{name} {field_name}"
+        if agree >= CLOCK_AGREE:
+            return {"simulated": True, "reason": f"record times advance exactly as {where} ({100 * agree:.0f} % of "
+                                                 f"{len(d_log)} intervals): stamped with the vehicle's own clock"}
+        ahead = d_field > 0  # the field's advance over its forward steps (a reboot steps back)
+        log_s = float(np.sum(d_log[ahead]))
+        ratio = float(np.sum(d_field[ahead])) / log_s if log_s > 0 else math.inf
+        if ratio > CLOCK_FAST:
+            return {"simulated": False, "reason": f"but {where} ran {ratio:.1f}x faster than the record times: a "
+                                                  "lockstep or sped-up simulation stamped with the wall clock; "
+                                                  "durations and rates below are wall-clock"}
+        return {"simulated": False, "reason": f"record times jitter against {where}, as a link's arrivals do"}
+    return {"simulated": None, "reason": "no time field of the vehicle's to tell"}
+
+
 def _profile(rec: Recording) -> dict[str, Any]:
     from companion.profiles import detect_profile
 
@@ -144,7 +204,7 @@ def summarise(rec: Recording) -> dict[str, Any]:
     ``messages`` (per type, most frequent first: ``count``, ``rate_hz`` (1 / median interval),
     ``mean_rate_hz`` (count / duration), ``streamed``, ``senders``, ``n_gaps``, ``gaps``),
     ``sensors`` (see ``sensors_found``), ``missing_for_diagnosis`` (roles with no message)
-    and ``profile`` (``name``, ``reason``).
+    ``profile`` (``name``, ``reason``) and ``clock`` (``simulated``, ``reason``: ``recording_clock``).
     Raises RecordingError if the recording holds no messages.
     """
     if rec.n_messages == 0:
@@ -167,6 +227,7 @@ def summarise(rec: Recording) -> dict[str, Any]:
         "sensors": sensors,
         "missing_for_diagnosis": [r for r in REQUIRED_FOR_DIAGNOSIS if not sensors[r]],
         "profile": _profile(rec),
+        "clock": recording_clock(rec),
     }
 
 
@@ -174,6 +235,11 @@ def _hz(rate: float | None) -> str:
     if rate is None:
         return "-"
     return f"{rate:.1f}" if rate >= 0.95 else f"{rate:.3f}"
+
+
+def _clock(c: dict[str, Any]) -> str:
+    kind = {True: "simulated", False: "wall", None: "unknown"}[c["simulated"]]
+    return f"clock     {kind} ({c['reason']})"
 
 
 def _start(t0_s: float, fmt: str) -> str:
@@ -188,6 +254,7 @@ def format_summary(s: dict[str, Any]) -> str:
         f"file      {s['file']}",
         f"format    {s['format']}",
         f"duration  {s['duration_s']:.1f} s, {s['n_messages']} messages, starting {_start(s['t0_s'], s['format'])}",
+        _clock(s["clock"]),
         f"skipped   {s['skipped_bytes']} bytes, {s['skipped_packets']} packets",
     ]
     lines += [f"note      {n}" for n in s["notes"]]

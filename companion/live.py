@@ -54,7 +54,7 @@ from companion.core import CROSS_FRAME_CAUSES, CompanionCore, HoldCause, StepOut
 from companion.errors import LinkError, UsageError, check_output, output_error
 from companion.inbound import MessageRouter, gyro_time_s, scalar_flow
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, LiveProfileDetector, Profile
-from companion.tlog_writer import TlogWriter
+from companion.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S, TlogWriter
 
 mav = link.mav
 
@@ -145,6 +145,110 @@ class HoldMonitor:
         if not was_holding:
             self.episodes += 1
         return f"flowhold: HOLD {cause.value}", mav.MAV_SEVERITY_WARNING
+
+
+def vehicle_time_s(msg: Any) -> float | None:
+    """The vehicle's boot time a message carries (s): ``time_boot_ms``, or a gyro's ``time_usec``;
+    None for messages without one (and for the flow, whose ``time_usec`` unit depends on the profile)."""
+    ms = getattr(msg, "time_boot_ms", None)
+    if ms is not None:
+        return float(ms) * 1e-3
+    if msg.get_type() in GYRO_MESSAGES:
+        return gyro_time_s(msg)
+    return None
+
+
+class RecordStamps:
+    """The companion's ``--tlog`` with the stamps a log of this link should carry.
+
+    A real vehicle (and the simulated one in real time): the wall clock, as MAVProxy stamps. A
+    simulated vehicle whose clock is not the wall clock says so in a STATUSTEXT ("simvehicle:
+    simulated clock (lockstep)") before any sensor data: then, as a SITL's log, ``SIM_EPOCH_S`` + the
+    vehicle's time (its messages' time fields, carried on across a reboot), so the companion's and
+    the vehicle's recordings share their time axis. Should the vehicle's clock stand still for
+    ``FREEZE_S`` of wall time (the vehicle stopped or gone), stamps run on at the wall clock's rate
+    from there. Stamps never go back.
+
+    Records written before the clock is known (the first HEARTBEATs) wait in memory: until a
+    sensor message arrives without the STATUSTEXT before it (the wall clock), or the STATUSTEXT
+    and then a time field, or ``PENDING_MAX_S`` of wall time.
+    """
+
+    FREEZE_S = 0.5
+    PENDING_MAX_S = 2.0
+
+    def __init__(self, writer: TlogWriter, wall: Callable[[], float], clock: Callable[[], float]) -> None:
+        self.writer = writer
+        self.wall = wall
+        self.clock = clock
+        #: None until known; then whether stamps are simulated time
+        self.simulated: bool | None = None
+        self.note = ""
+        self._vt: float | None = None  # the vehicle's time (s), made monotonic across reboots
+        self._last_raw: float | None = None
+        self._offset = 0.0
+        self._vt_clock = 0.0  # monotonic clock when the vehicle's time last advanced
+        self._last_stamp = -math.inf
+        self._pending: list[tuple[bytes, float]] = []
+        self._first_clock: float | None = None
+
+    def observe(self, msg: Any) -> None:
+        """A message from the vehicle, before it is recorded: the clock notice and its time."""
+        if msg.get_type() == "STATUSTEXT" and SIM_CLOCK_TEXT in str(msg.text):
+            if self.simulated is None:
+                self.simulated = True
+                self.note = str(msg.text)
+            return
+        t = vehicle_time_s(msg)
+        if t is None or not math.isfinite(t):
+            return
+        if self.simulated is None:
+            self.simulated = False  # sensor data came first: not a simulated clock
+        if self._last_raw is not None and t < self._last_raw - 1.0:  # a reboot: carry the time on
+            self._offset += self._last_raw - t
+        if self._vt is None or t + self._offset > self._vt:
+            self._vt = t + self._offset
+            self._vt_clock = self.clock()
+        self._last_raw = t
+
+    def _stamp(self) -> float:
+        if not self.simulated:
+            return self.wall()
+        assert self._vt is not None
+        stalled = max(0.0, self.clock() - self._vt_clock - self.FREEZE_S)
+        stamp = max(SIM_EPOCH_S + self._vt + stalled, self._last_stamp)
+        self._last_stamp = stamp
+        return stamp
+
+    def write(self, packet: bytes) -> None:
+        now = self.clock()
+        if self.simulated is None or (self.simulated and self._vt is None):
+            if self._first_clock is None:
+                self._first_clock = now
+            if now - self._first_clock <= self.PENDING_MAX_S:
+                self._pending.append((packet, self.wall()))
+                return
+            self._settle()
+        self._flush()
+        self.writer.write_bytes(packet, self._stamp())
+
+    def _settle(self) -> None:
+        """No time to stamp with: what waits is stamped with the wall clock, as is what follows
+        until the vehicle's time is known."""
+        if self.simulated is None or self._vt is None:
+            self.simulated = False
+
+    def _flush(self) -> None:
+        if not self._pending:
+            return
+        pending, self._pending = self._pending, []
+        for packet, wall in pending:
+            self.writer.write_bytes(packet, self._stamp() if self.simulated else wall)
+
+    def close(self) -> None:
+        self._settle()
+        self._flush()
+        self.writer.close()
 
 
 @dataclass
@@ -239,7 +343,7 @@ class LiveCompanion:
         self.commander = Commander()
         self.monitor = HoldMonitor()
         self.counters: Counter[str] = Counter()
-        self.tlog = TlogWriter(tlog) if tlog else None
+        self.tlog = RecordStamps(TlogWriter(tlog), wall, clock) if tlog else None
         self.tlog_path = tlog
         # vehicle state
         self.armed = False
@@ -294,9 +398,8 @@ class LiveCompanion:
             self.counters["send errors"] += 1
             return
         if self.tlog is not None:
-            stamp = self.wall()
             for buf in bufs:
-                self.tlog.write_bytes(buf, stamp)
+                self.tlog.write(buf)
 
     def _statustext(self, text: str, severity: int) -> None:
         self._send(link.statustext(self.conn.mav, text, severity))
@@ -406,7 +509,9 @@ class LiveCompanion:
             self.counters[link.bad_data_kind(msg)] += 1
             return None
         if self.tlog is not None:
-            self.tlog.write_bytes(bytes(msg.get_msgbuf()), self.wall())
+            if self._from_vehicle(msg):
+                self.tlog.observe(msg)
+            self.tlog.write(bytes(msg.get_msgbuf()))
         return msg
 
     # -- incoming ------------------------------------------------------------------------

@@ -20,6 +20,14 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 _TIME_HEADER = struct.Struct(">Q")
 
+#: UNIX time of simulated time 0 in a recording stamped with a simulator's clock
+#: (2026-01-01T00:00:00Z): the scenarios' recordings, and the vehicle's and the companion's in
+#: lockstep or speed-up (header = SIM_EPOCH_S + simulated seconds)
+SIM_EPOCH_S = 1_767_225_600.0
+#: in the STATUSTEXT a simulated vehicle sends each peer when its clock is not the wall clock
+#: ("simvehicle: simulated clock (lockstep)"); a recording that holds it is stamped with simulated time
+SIM_CLOCK_TEXT = "simulated clock"
+
 
 def mav_encoder(sysid: int, compid: int) -> mavlink2.MAVLink:
     """A pymavlink encoder (ardupilotmega dialect, MAVLink 2, no file) for one sender.

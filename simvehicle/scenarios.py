@@ -31,13 +31,13 @@ from companion.config import Config
 from companion.core import CompanionCore
 from companion.inbound import MessageRouter
 from companion.profiles import Profile
-from companion.tlog_writer import TlogWriter
+from companion.tlog_writer import SIM_EPOCH_S, TlogWriter
 from simvehicle import telemetry
 from simvehicle.flow_sensor import flow_frame
 from simvehicle.sim import FrameSample, Simulator, Turbulence
 
 #: UNIX time of scenario time 0 in recordings (2026-01-01T00:00:00Z): headers = TLOG_EPOCH_S + t
-TLOG_EPOCH_S = 1_767_225_600.0
+TLOG_EPOCH_S = SIM_EPOCH_S
 VEHICLE_SYSID = 1
 
 Pair = tuple[float, float]

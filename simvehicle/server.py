@@ -23,8 +23,10 @@ Timing (CONVENTIONS.md: the command computed from frame k acts from frame k+1):
   advances anyway with the GUID_TIMEOUT rule applied in simulated time. The simulated clock
   starts when the first peer is heard.
 
-The vehicle's recording is stamped with simulated time (UNIX time at start + simulated
-seconds), so a lockstep recording has the same time axis as a real-time one.
+The vehicle's recording is stamped with simulated time, so a lockstep recording has the same
+time axis as a real-time one: in real time from the UNIX time at start; in lockstep and
+speed-up from ``SIM_EPOCH_S`` (2026-01-01), as a SITL's log is, and the vehicle says so to each new
+peer in a STATUSTEXT ("simvehicle: simulated clock (lockstep)"), which the recordings keep.
 """
 
 from __future__ import annotations
@@ -61,7 +63,7 @@ from companion.config import (
 from companion.errors import LinkError, UsageError, check_output, output_error
 from companion.outbound import COMPANION_COMPONENT, VELOCITY_TYPE_MASK, quaternion_to_euler
 from companion.profiles import FLOW_MESSAGE, Profile
-from companion.tlog_writer import TlogWriter
+from companion.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S, TlogWriter
 from simvehicle import telemetry
 from simvehicle.scenarios import SCENARIOS, Run, Scenario
 from simvehicle.sim import FrameSample, Simulator, Turbulence
@@ -800,6 +802,14 @@ class UdpVehicle:
         #: MAVLink 2 signing: the newest timestamp of each (link id, system, component), all links
         self._signing_streams: dict[tuple[int, int, int], int] = {}
         self.unix_start_s = time.time()
+        #: a clock that is not the wall clock (lockstep, speed-up) is said to each new peer in a
+        #: STATUSTEXT, and stamps the recording from SIM_EPOCH_S as a SITL's log would; in real
+        #: time the recording is stamped from the UNIX time at start
+        self.clock_note: str | None = None
+        if lockstep or speedup != 1.0:
+            mode = "lockstep" if lockstep else f"speedup x{speedup:g}"
+            self.clock_note = f"simvehicle: {SIM_CLOCK_TEXT} ({mode})"
+        self.epoch_s = SIM_EPOCH_S if self.clock_note else self.unix_start_s
         if key is not None:
             link.setup_signing(vehicle.enc, key, unix_s=self.unix_start_s)
             link.setup_signing(vehicle.gcs_enc, key, unix_s=self.unix_start_s)
@@ -819,7 +829,7 @@ class UdpVehicle:
     # -- sending -------------------------------------------------------------------------
 
     def _stamp(self) -> float:
-        return self.unix_start_s + self.v.sim.t_s
+        return self.epoch_s + self.v.sim.t_s
 
     def _pack(self, msg: Any, enc: Any | None = None) -> bytes:
         enc = enc or self.v.enc
@@ -928,7 +938,10 @@ class UdpVehicle:
                 fresh = False
                 self.log(f"simvehicle: peer {addr[0]}:{addr[1]} (system {msg.get_srcSystem()} "
                          f"component {msg.get_srcComponent()})")
-                self._sendto(self._pack(self.v.heartbeat()), [peer])
+                hello = [self._pack(self.v.heartbeat())]
+                if self.clock_note:  # in the same datagram: the peer knows before any sensor data
+                    hello.append(self._pack(link.statustext(self.v.enc, self.clock_note, mav.MAV_SEVERITY_INFO)))
+                self._sendto(b"".join(hello), [peer])
             peer.last_heard_wall_s = self.clock()
             peer.seen.add((msg.get_srcSystem(), msg.get_srcComponent()))
             try:

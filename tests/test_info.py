@@ -177,3 +177,41 @@ def test_command_line(flight, tmp_path, capsys):
     bad.write_bytes(b"")
     assert main(["info", str(bad)]) == 4  # ExitCode.BAD_INPUT
     assert "no MAVLink packets found" in capsys.readouterr().err
+
+
+def _attitude_log(path: Path, stamps: np.ndarray, boot_s: np.ndarray, text: bytes | None = None) -> Recording:
+    veh = mav_encoder(1, 1)
+    with TlogWriter(path) as log:
+        if text is not None:
+            log.write(veh.statustext_encode(6, text), float(stamps[0]), encoder=veh)
+        for t, b in zip(stamps, boot_s, strict=True):
+            log.write(veh.attitude_encode(int(round(b * 1e3)), 0, 0, 0, 0, 0, 0), float(t), encoder=veh)
+    return read_tlog(path)
+
+
+def test_recording_clock_tells_simulated_from_wall_stamps(tmp_path):
+    """Issue 14: ``info`` said a lockstep recording lasted 1.3 s with flow at 1590 Hz. It now says
+    whose clock stamped the records: the simulated vehicle's STATUSTEXT; stamps that advance exactly
+    as the vehicle's time field (a simulator's log); a link's jittery arrivals (wall clock); and wall
+    stamps of a simulation that ran faster than real time."""
+    from companion.info import recording_clock
+    from companion.tlog_writer import SIM_EPOCH_S
+
+    rng = np.random.default_rng(1)
+    boot = np.arange(0, 10.0, 0.02)
+    cases = {
+        "marker": (T0 + boot / 7 + rng.uniform(0, 2e-3, len(boot)), b"simvehicle: simulated clock (lockstep)"),
+        "exact": (SIM_EPOCH_S + boot, None),
+        "link": (T0 + 5.0 + boot + rng.uniform(0, 3e-3, len(boot)), None),
+        "fast": (T0 + np.sort(boot / 7 + rng.uniform(0, 2e-4, len(boot))), None),
+    }
+    found = {name: recording_clock(_attitude_log(tmp_path / f"{name}.tlog", stamps, boot, text))
+             for name, (stamps, text) in cases.items()}
+    assert found["marker"] == {"simulated": True,
+                               "reason": "the recording says so: 'simvehicle: simulated clock (lockstep)'"}
+    assert found["exact"]["simulated"] is True and "exactly as ATTITUDE time_boot_ms" in found["exact"]["reason"]
+    assert found["link"]["simulated"] is False and "jitter" in found["link"]["reason"]
+    assert found["fast"]["simulated"] is False and "ran 7.0x faster" in found["fast"]["reason"]
+    stamps, marker = cases["marker"]
+    text = format_summary(summarise(_attitude_log(tmp_path / "again.tlog", stamps, boot, marker)))
+    assert "clock     simulated (the recording says so" in text

@@ -97,6 +97,37 @@ def test_paper_scenarios_through_the_loop(tmp_path, paper_cfg, name, profile):
     _assert_paper_figures(name, _check_against_fly(paper_cfg, name, profile, vt))
 
 
+def test_lockstep_recordings_are_stamped_with_simulated_time(step_loop):
+    """Issue 14: the companion's lockstep recording was stamped with the wall clock (``info``: 1.3 s,
+    flow at 1590 Hz). Both recordings now carry simulated time from SIM_EPOCH_S, as a SITL's log
+    does: a vehicle message has the same stamp in both (its time field + the epoch), and ``info``
+    says the clock is simulated (the vehicle's STATUSTEXT, which both recordings keep)."""
+    from companion.info import summarise
+    from companion.recording import load_recording
+    from companion.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S
+
+    vt, ct, _vlog, _clog = step_loop
+    for path in (vt, ct):
+        rec = load_recording(path)
+        att = rec.table("ATTITUDE").from_sender(compid=1)
+        np.testing.assert_allclose(att.t_s - SIM_EPOCH_S, att["time_boot_ms"] * 1e-3, rtol=0, atol=2e-6)
+        texts = [str(t) for t in rec.table("STATUSTEXT")["text"]]
+        assert f"simvehicle: {SIM_CLOCK_TEXT} (lockstep)" in texts
+        s = summarise(rec)
+        assert s["clock"]["simulated"] is True
+        assert 15.0 <= s["duration_s"] < 18.0  # 15 s flown; the companion's tail on the wall clock
+        flow = next(m for m in s["messages"] if m["name"] == "OPTICAL_FLOW")
+        assert flow["rate_hz"] == pytest.approx(50.0, rel=1e-3)
+        # never back in time, the companion's own messages included
+        assert np.all(np.diff(np.sort(np.concatenate([t.record for t in rec]))) > 0)
+        order = np.argsort(np.concatenate([t.record for t in rec]))
+        assert np.all(np.diff(np.concatenate([t.t_s for t in rec])[order]) >= 0)
+    sat = load_recording(ct).table("SET_ATTITUDE_TARGET").from_sender(compid=191)
+    in_flight = sat["time_boot_ms"] < 15_000
+    # each command is stamped at the frame it answers
+    np.testing.assert_allclose(sat.t_s[in_flight] - SIM_EPOCH_S, sat["time_boot_ms"][in_flight] * 1e-3, atol=2e-6)
+
+
 def test_recordings_open_in_mavlogdump(step_loop):
     vt, ct, _vlog, _clog = step_loop
     n_frames = int(round(15.0 / 0.02)) + 1
@@ -198,9 +229,9 @@ def test_gcs_velocity_setpoints_and_sticks_are_followed(tmp_path):
 def test_real_time_speedup_paces_the_vehicle(tmp_path):
     """--speedup 4: 12 simulated seconds take about 3 s, and --setpoint is flown."""
     port = free_udp_port()
-    vt = tmp_path / "vehicle.tlog"
+    vt, ct = tmp_path / "vehicle.tlog", tmp_path / "companion.tlog"
     with Procs(tmp_path) as procs:
-        comp = procs.companion(port, "--arm", "--setpoint", "0.8,-0.4", "--quiet")
+        comp = procs.companion(port, "--arm", "--setpoint", "0.8,-0.4", "--quiet", "--tlog", str(ct))
         comp.wait_for("waiting for a vehicle")
         veh, _ = procs.vehicle("--speedup", "4", "--duration", "12", "--tlog", str(vt), port=port)
         assert veh.wait(timeout_s=120) == 0, veh.text()
@@ -212,6 +243,16 @@ def test_real_time_speedup_paces_the_vehicle(tmp_path):
     vx, vy = _truth_mean(run, 10.0, 12.0)
     assert vx == pytest.approx(0.8, abs=0.04 * 0.8 + 0.01)
     assert vy == pytest.approx(-0.4, abs=0.04 * 0.4 + 0.01)
+    # sped up: both recordings in simulated time (issue 14), a vehicle message stamped alike in both
+    from companion.info import summarise
+    from companion.recording import load_recording
+    from companion.tlog_writer import SIM_EPOCH_S
+
+    for path in (vt, ct):
+        rec = load_recording(path)
+        att = rec.table("ATTITUDE").from_sender(compid=1)
+        np.testing.assert_allclose(att.t_s - SIM_EPOCH_S, att["time_boot_ms"] * 1e-3, rtol=0, atol=2e-6)
+        assert summarise(rec)["clock"]["simulated"] is True
 
 
 # ---------------------------------------------------------------------------------------------
@@ -458,6 +499,54 @@ def test_gcs_setpoint_is_held_then_ramps_to_the_constant_one(tmp_path, paper_cfg
 
 # ---------------------------------------------------------------------------------------------
 # The live loop's pure pieces
+
+
+def test_record_stamps_follow_a_simulated_vehicles_clock(tmp_path):
+    """The companion's recording: the wall clock until a simulated vehicle says otherwise; then its
+    time fields + SIM_EPOCH_S (what waited in memory too), carried on across a reboot, on the
+    wall clock's rate once the vehicle's clock stands still, never back in time."""
+    from companion.live import RecordStamps
+    from companion.recording import load_recording
+    from companion.tlog_writer import SIM_EPOCH_S, TlogWriter
+
+    enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    parse = mav.MAVLink(None)
+    clock = [100.0]
+
+    def msg(m):
+        return parse.decode(bytearray(m.pack(enc)))
+
+    def att(t_s):
+        return msg(enc.attitude_encode(int(round(t_s * 1e3)), 0, 0, 0, 0, 0, 0))
+
+    # a simulated vehicle: heartbeat, the notice, then frames
+    st = RecordStamps(TlogWriter(tmp_path / "sim.tlog"), wall=lambda: 1.7e9 + clock[0], clock=lambda: clock[0])
+    hb = msg(enc.heartbeat_encode(2, 3, 0, 0, 0))
+    st.write(bytes(hb.get_msgbuf()))  # ours, before the vehicle: waits
+    for m in (hb, msg(enc.statustext_encode(6, b"simvehicle: simulated clock (lockstep)")), att(0.0), att(0.02),
+              att(5.0), att(0.0), att(0.02)):  # ... and a reboot: boot time back to 0
+        st.observe(m)
+        st.write(bytes(m.get_msgbuf()))
+        clock[0] += 0.001
+    clock[0] += 2.0  # the vehicle stands still for 2 s of wall time: 1.5 s after FREEZE_S
+    st.write(bytes(hb.get_msgbuf()))
+    st.close()
+    assert st.simulated is True
+    t = np.concatenate([tab.t_s for tab in load_recording(tmp_path / "sim.tlog")])
+    rel = np.sort(t) - SIM_EPOCH_S
+    np.testing.assert_allclose(rel, [0, 0, 0, 0, 0.02, 5.0, 5.0, 5.02, 5.02 + 1.5 + 0.001], atol=1e-5)
+
+    # a vehicle with no notice: its sensor data comes first, the wall clock it is
+    clock[0] = 100.0
+    st = RecordStamps(TlogWriter(tmp_path / "real.tlog"), wall=lambda: 1.7e9 + clock[0], clock=lambda: clock[0])
+    for m in (hb, att(3.0), att(3.02)):
+        st.observe(m)
+        st.write(bytes(m.get_msgbuf()))
+        clock[0] += 0.5
+    st.close()
+    assert st.simulated is False
+    t = np.sort(np.concatenate([tab.t_s for tab in load_recording(tmp_path / "real.tlog")]))
+    np.testing.assert_allclose(t - 1.7e9, [100.0, 100.5, 101.0], atol=1e-5)
 
 
 def test_decayed_setpoint_closed_form():
