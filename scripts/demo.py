@@ -5,6 +5,9 @@ Starts two processes on loopback, as in docs/loop.md:
     python -m simvehicle serve --lockstep --listen 127.0.0.1:PORT --tlog OUT/vehicle.tlog
     python -m companion run --connect udpout:127.0.0.1:PORT --arm --tlog OUT/companion.tlog
 
+PORT is a free port (``--port`` picks one); the demo prints it with the command that watches the
+flight live from a ground station while it runs (MAVProxy ``--master=udpout:127.0.0.1:PORT``).
+
 and acts as the ground station itself (a third MAVLink peer): it flies a 30 s profile on the
 vehicle's clock - hover, a step to 1.5 m/s forward and 0.5 m/s left at 2 s, hold (zero) from
 12 s, and a 4 N headwind injected by PARAM_SET SIM_WIND_FX = -4 at 18 s (Fig. 17's gust) - then
@@ -55,6 +58,13 @@ def _wait_port(proc: subprocess.Popen, log: Path, timeout_s: float = 60.0) -> in
             break
         time.sleep(0.05)
     raise RuntimeError(f"the vehicle did not start:\n{log.read_text()[-2000:]}")
+
+
+def watch_lines(port: int) -> list[str]:
+    """How to watch this run live: the vehicle's true address (it serves any peer that sends to it)."""
+    return [f"watch it live while it flies: mavproxy.py --master=udpout:127.0.0.1:{port}",
+            f"  (QGroundControl: a UDP comm link with server 127.0.0.1:{port}; lockstep runs faster than "
+            "real time: docs/loop.md, \"Watching with MAVProxy or QGroundControl\")"]
 
 
 def _setpoint_at(t_s: float) -> tuple[float, float]:
@@ -116,14 +126,19 @@ def _stop(proc: subprocess.Popen, sig: int = signal.SIGINT) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default="out/demo", help="folder for the recordings and the plot")
+    ap.add_argument("--out", default="out/demo", help="folder for the recordings and the plot (default out/demo)")
+    ap.add_argument("--port", type=int, default=0,
+                    help="UDP port of the vehicle on 127.0.0.1, for a ground station to watch (default: a free one)")
     args = ap.parse_args()
+    sys.stdout.reconfigure(line_buffering=True)  # each line as it happens, also into a pipe or a log
+    if not 0 <= args.port <= 65535:
+        ap.error(f"--port must be in 0..65535, got {args.port}")
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     vtlog, ctlog, png = out / "vehicle.tlog", out / "companion.tlog", out / "loop.png"
     vlog, clog = out / "vehicle.log", out / "companion.log"
     t0 = time.monotonic()
-    vehicle = _start(["-m", "simvehicle", "serve", "--lockstep", "--listen", "127.0.0.1:0", "--duration",
+    vehicle = _start(["-m", "simvehicle", "serve", "--lockstep", "--listen", f"127.0.0.1:{args.port}", "--duration",
                       str(DURATION_S), "--tlog", str(vtlog)], vlog)
     comp = None
     try:
@@ -132,6 +147,8 @@ def main() -> int:
         comp = _start(["-m", "companion", "run", "--connect", f"udpout:127.0.0.1:{port}", "--arm", "--quiet",
                        "--tlog", str(ctlog)], clog)
         print(f"companion: python -m companion run --connect udpout:127.0.0.1:{port} --arm")
+        for line in watch_lines(port):
+            print(line, flush=True)
         _fly_ground_station(port, vehicle)
         vehicle.wait(timeout=30)
     finally:
@@ -158,7 +175,8 @@ def main() -> int:
           f"{abs(run['vx_m_s'][-1]):.3f} m/s")
     print(f"plot: {png}")
     print(f"recordings: {vtlog} (vehicle), {ctlog} (companion); logs: {vlog}, {clog}")
-    print("watch it live: see docs/loop.md (MAVProxy or QGroundControl on UDP 14550)")
+    print("to watch a flight in real time: python -m simvehicle serve (UDP 127.0.0.1:14550), the companion "
+          "with --connect udpout:127.0.0.1:14550, and mavproxy.py --master=udpout:127.0.0.1:14550 (docs/loop.md)")
     return 0
 
 
