@@ -41,6 +41,7 @@ MAX_BRIDGE_S = 0.6
 REBOOT_BACKSTEP_S = 1.0
 CUBIC = True
 _FLAGS = ("flow_rec", "att_rec", "gyro_rec", "cmd_rec")
+_OPTIONAL = ("flow_body_x_rad_s", "flow_body_y_rad_s")
 _ARRAYS = ("t_s", "dt_s", "seg", "dphi_x_rad", "dphi_y_rad", "gyro_x_rad_s", "gyro_y_rad_s", "range_m", "roll_rad",
            "pitch_rad", "yaw_rad", "roll_cmd_rad", "pitch_cmd_rad", "vx_set_m_s", "vy_set_m_s", "truth_vx_m_s",
            "truth_vy_m_s")
@@ -88,6 +89,10 @@ class FlightData:
     #: per frame, whether the signal was recorded at the frame (False: bridged over a gap from its
     #: neighbours, lost telemetry or a slower logging rate); None = recorded everywhere
     flow_rec: np.ndarray | None = None
+    #: the flow message's own body rates (roll, pitch rate, rad/s; ArduPilot: flow_rate - flow_comp_m,
+    #: PX4: integrated gyro / integration time), sampled with the flow; None when it has none
+    flow_body_x_rad_s: np.ndarray | None = None
+    flow_body_y_rad_s: np.ndarray | None = None
     att_rec: np.ndarray | None = None
     gyro_rec: np.ndarray | None = None
     cmd_rec: np.ndarray | None = None
@@ -128,6 +133,9 @@ class FlightData:
         kw["seg"] = np.cumsum(brk) - 1
         for name in _FLAGS:
             kw[name] = getattr(self, name)[idx]
+        for name in _OPTIONAL:
+            v = getattr(self, name)
+            kw[name] = None if v is None else v[idx]
         return FlightData(self.path, self.profile, self.profile_reason, self.frame_s, self.command_source,
                           notes=list(self.notes), gyro_resolution_rad_s=self.gyro_resolution_rad_s,
                           flow_resolution_rad=self.flow_resolution_rad, **kw)
@@ -380,7 +388,8 @@ def _concat(parts: list[FlightData]) -> FlightData:
     seg0 = 0
     notes: list[str] = []
     shifted = False
-    pieces: dict[str, list[np.ndarray]] = {k: [] for k in (*_ARRAYS, *_FLAGS)}
+    body = all(p.flow_body_x_rad_s is not None for p in parts)
+    pieces: dict[str, list[np.ndarray]] = {k: [] for k in (*_ARRAYS, *_FLAGS, *(_OPTIONAL if body else ()))}
     for p in parts:
         if p.n == 0:
             continue
@@ -421,9 +430,11 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
     if len(of) == 0:
         raise RecordingError(f"{name}: no {flow_name} frames from the vehicle")
     fc = flow_columns(of, prof, cfg.flow_sensor.q_rad_per_count)
-    tr, sx, sy, qual, integ, tlog = _sorted_unique(np.asarray(fc.time_s, float), np.asarray(fc.scene_x, float),
-                                                   np.asarray(fc.scene_y, float), np.asarray(fc.quality, float),
-                                                   np.asarray(fc.integration_s, float), of.t_s)
+    bx_all = np.broadcast_to(np.asarray(fc.body_x_rad_s, float), np.shape(fc.time_s))
+    by_all = np.broadcast_to(np.asarray(fc.body_y_rad_s, float), np.shape(fc.time_s))
+    tr, sx, sy, qual, integ, tlog, bxr, byr = _sorted_unique(
+        np.asarray(fc.time_s, float), np.asarray(fc.scene_x, float), np.asarray(fc.scene_y, float),
+        np.asarray(fc.quality, float), np.asarray(fc.integration_s, float), of.t_s, bx_all, by_all)
     if len(tr) < 10:
         raise RecordingError(f"{name}: only {len(tr)} {flow_name} frames")
     offset = float(np.median(tlog - tr))
@@ -449,6 +460,11 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
     dt = np.full(n, T)
     dt[1:] = np.diff(tb)
     dt[1:][np.diff(tb) > bridge + 0.5 * T] = T
+    body_x = body_y = None
+    if np.count_nonzero(np.isfinite(bxr) & np.isfinite(byr)) >= 0.9 * len(tr):
+        ok_b = np.isfinite(bxr) & np.isfinite(byr)
+        body_x = _interp_gapped(tb, tr[ok_b], bxr[ok_b], bridge)
+        body_y = _interp_gapped(tb, tr[ok_b], byr[ok_b], bridge)
 
     # attitude estimate (a cubic through slower or gapped samples)
     at = _from_vehicle(rec.tables["ATTITUDE"], sysid)
@@ -577,4 +593,5 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
         truth_vx_m_s=tvx, truth_vy_m_s=tvy, notes=notes,
         gyro_resolution_rad_s=(1e-3 if scale == 1e-3 else 0.0) / np.sqrt(12.0),
         flow_resolution_rad=(cfg.flow_sensor.q_rad_per_count if prof is Profile.PAPER else 0.0) / np.sqrt(12.0),
-        flow_rec=flow_rec, att_rec=att_rec, gyro_rec=gyro_rec, cmd_rec=cmd_rec)
+        flow_rec=flow_rec, att_rec=att_rec, gyro_rec=gyro_rec, cmd_rec=cmd_rec,
+        flow_body_x_rad_s=body_x, flow_body_y_rad_s=body_y)

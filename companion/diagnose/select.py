@@ -62,6 +62,8 @@ class Settings:
     #: a short flight uses shorter blocks, so that each fold holds at least two: its length is
     #: duration / (2 folds), between this and ``block_s`` (s)
     min_block_s: float = 2.0
+    #: an exact comparison needs held-out data in at least this many time blocks
+    min_blocks: int = 8
     #: time clusters of the cluster-robust covariance (longer than the residuals' correlation)
     cluster_s: float = 10.0
     z_min: float = 3.0
@@ -72,6 +74,10 @@ class Settings:
     #: height, gains in few folds)
     cv_t_screen: float = 1.0
     min_improvement_pct: float = 2.0
+    #: an effect with a physical size threshold (``sizes``) whose parameters are this many sigma
+    #: from the nominal needs only some held-out gain: it matters by its size, and a noisy channel
+    #: (a gyro bias under a noisy attitude) dilutes its share of the residual
+    z_overwhelming: float = 10.0
     chord_iterations: int = 2
     #: a searched (localised) effect must beat this tail probability of its statistic under the
     #: no-effect null, calibrated on the recording itself (``Group.null_pvalue``)
@@ -595,6 +601,9 @@ class Selector:
                            f"(p = {null_p:.2g} > {self.s.null_p_max:g})")
         if localised and not exact:
             pass  # the linearised screen: the calibrated null only; the exact refit checks the blocks
+        elif exact and not localised and len(diff) < self.s.min_blocks:
+            reasons.append(f"too short to judge on held-out data: {len(diff)} time blocks of "
+                           f"{self.block_s:.1f} s (at least {self.s.min_blocks} needed)")
         elif not cv_t >= t_need:
             over = ("time blocks where it acts" if localised else "time blocks") if exact else "folds"
             reasons.append(f"held-out improvement not consistent over {over} (t = {cv_t:.1f} < {t_need:g})")
@@ -603,14 +612,21 @@ class Selector:
         if not comp.dbic < 0:
             reasons.append(f"the information criterion does not prefer it (dBIC = {comp.dbic:+.1f})")
         for cand in cands:
+            ci = self.g.index(cand.params)
+            span = self.g.upper[ci] - self.g.lower[ci]
+            at_bound = (np.abs(with_.p[ci] - self.g.lower[ci]) <= 1e-6 * span) \
+                | (np.abs(with_.p[ci] - self.g.upper[ci]) <= 1e-6 * span)
+            if np.any(at_bound):
+                reasons.append("the fit ran to the edge of the allowed range: the data ask for more than this "
+                               "effect can be, so something else is at work")
             vals = {n: float(with_.p[self.g.params.index(n)]) for n in cand.params}
             for check in (cand.physical, cand.matters):
                 why = check(vals) if check is not None else None
                 if why:
                     reasons.append(why)
-        # an effect with a physical size threshold matters by its size (``sizes``), whatever share of
-        # a noisy channel it explains; its held-out residual must still be lower
-        need = 0.0 if all(c.matters is not None for c in cands) else self.s.min_improvement_pct
+        need = self.s.min_improvement_pct
+        if all(c.matters is not None for c in cands) and z >= self.s.z_overwhelming:
+            need = 0.0
         if not comp.improvement_pct > need:
             where = " where it acts" if localised else ""
             reasons.append(f"held-out residual{where} lower by only {comp.improvement_pct:.2f} % "
