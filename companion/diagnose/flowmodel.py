@@ -360,14 +360,22 @@ class FlowProblem:
         X, _ = self.flow_velocity(p)
         IX = np.zeros_like(X)
         IX[:, 1:] = np.cumsum(0.5 * (X[:, 1:] + X[:, :-1]) * np.diff(self.t), axis=1)  # used within segments
-        # the form-drag regressor: integral of v |v| (v from the odometry, per segment)
+        # the form-drag regressor: integral of v |v|, v the odometry's change over +-h frames (the
+        # boundary-averaging span): a frame-to-frame derivative of quantized odometry is a train of
+        # spikes, and squared they would swamp the drag
         v = np.zeros_like(X)
+        h = self.h
         for a, b in self.data.segments():
-            if b - a > 1:
-                v[:, a:b] = np.gradient(X[:, a:b], self.t[a:b], axis=1)
+            if b - a > 2 * h + 1:
+                k = np.arange(a, b)
+                lo = np.clip(k - h, a, b - 1)
+                hi = np.clip(k + h, a, b - 1)
+                v[:, a:b] = (X[:, hi] - X[:, lo]) / (self.t[hi] - self.t[lo])
         q = v * np.abs(v)
+        Q = np.zeros_like(X)  # integral of v|v| (as X is of v); the window's boundary means of its
+        Q[:, 1:] = np.cumsum(0.5 * (q[:, 1:] + q[:, :-1]) * np.diff(self.t), axis=1)  # integral, as for dx
         IQ = np.zeros_like(X)
-        IQ[:, 1:] = np.cumsum(0.5 * (q[:, 1:] + q[:, :-1]) * np.diff(self.t), axis=1)
+        IQ[:, 1:] = np.cumsum(0.5 * (Q[:, 1:] + Q[:, :-1]) * np.diff(self.t), axis=1)
         k0, k1, d0, d1 = self._k0, self._k1, self._den0, self._den1
         return (self._bavg(X, k1, d1) - self._bavg(X, k0, d0), self._bavg(IX, k1, d1) - self._bavg(IX, k0, d0),
                 self._bavg(IQ, k1, d1) - self._bavg(IQ, k0, d0))
