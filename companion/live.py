@@ -29,6 +29,9 @@ reproduces them frame for frame. What only a live loop needs lives here:
   going out at the frame rate; across frames (``core.Plausibility``), a velocity estimate that jumps
   further than the vehicle can accelerate (a one-frame outlier: held, not flown), and flow or
   gyro values stuck while the vehicle turns;
+- announcements: taking and releasing control (NOTICE), holds (WARNING) and "resumed" (NOTICE)
+  go to the ground station as STATUSTEXT from component 191, rate limited (``TextLimiter``) so a
+  flapping cause cannot flood the link, and to the console;
 - no command leaves that is not finite and inside the tilt limit; a message that cannot be
   handled is counted and dropped, never fatal; on UDP each datagram is parsed on its own;
   commands to the companion are refused with a COMMAND_ACK; what is refused is counted in the
@@ -67,6 +70,13 @@ REBOOT_JUMP_S = 1.0
 COMMAND_RETRY_S = 1.0
 #: wall-clock seconds after the vehicle is heard before "profile still unknown" is said
 PROFILE_WARN_S = 5.0
+#: STATUSTEXTs to the ground station (wall clock): the same text at most once per TEXT_REPEAT_S, and
+#: all texts at most TEXT_BURST at once and TEXT_RATE_HZ sustained (``TextLimiter``)
+TEXT_REPEAT_S = 1.0
+TEXT_BURST = 20
+TEXT_RATE_HZ = 5.0
+#: the characters a STATUSTEXT carries
+STATUSTEXT_LEN = 50
 COMMAND_TRIES = 5
 STATUS_PERIOD_TTY_S = 0.25
 STATUS_PERIOD_LOG_S = 5.0
@@ -251,6 +261,67 @@ class RecordStamps:
         self.writer.close()
 
 
+class TextLimiter:
+    """Rate limit for the STATUSTEXTs the companion sends (times passed in, s), so that a flapping
+    cause (a hold that comes and goes every frame) cannot flood the link, while every new cause is
+    still said at once.
+
+    A text goes out at once unless the same text went out less than ``repeat_s`` ago (the flapping
+    case), or the token bucket (``burst`` texts, refilled at ``rate_hz``: a cap on many causes at
+    once) is empty. Otherwise it is held back: only the latest held-back text is kept, and it goes
+    out (``offer`` of a new text, or ``poll``) once allowed, with the number of texts that never went
+    out (`` (+N held back)``), so the ground station always ends with the current state."""
+
+    def __init__(self, repeat_s: float = TEXT_REPEAT_S, burst: int = TEXT_BURST,
+                 rate_hz: float = TEXT_RATE_HZ) -> None:
+        self.repeat_s = repeat_s
+        self.burst = burst
+        self.rate_hz = rate_hz
+        self.tokens = float(burst)
+        self._t: float | None = None
+        self._sent_at: dict[str, float] = {}
+        self.held: tuple[str, int] | None = None
+        self.n_held = 0
+        #: texts that never went out
+        self.dropped = 0
+
+    def _refill(self, now_s: float) -> None:
+        if self._t is not None:
+            self.tokens = min(float(self.burst), self.tokens + max(0.0, now_s - self._t) * self.rate_hz)
+        self._t = now_s
+
+    def _allowed(self, now_s: float, text: str) -> bool:
+        return self.tokens >= 1.0 and now_s - self._sent_at.get(text, -math.inf) >= self.repeat_s
+
+    def _send(self, now_s: float, text: str, severity: int) -> tuple[str, int]:
+        self.tokens -= 1.0
+        self._sent_at[text] = now_s
+        n, self.n_held, self.held = self.n_held, 0, None
+        if n:
+            suffix = f" (+{n} held back)"
+            text = text[:STATUSTEXT_LEN - len(suffix)] + suffix
+        return text, severity
+
+    def offer(self, now_s: float, text: str, severity: int) -> tuple[str, int] | None:
+        """(text, severity) to send now, or None when it is held back."""
+        self._refill(now_s)
+        if self.held is not None:  # the state moved on: what was held back will never go out
+            self.n_held += 1
+            self.dropped += 1
+            self.held = None
+        if self._allowed(now_s, text):
+            return self._send(now_s, text, severity)
+        self.held = (text, severity)
+        return None
+
+    def poll(self, now_s: float) -> tuple[str, int] | None:
+        """The held-back text, once it is allowed (None otherwise)."""
+        self._refill(now_s)
+        if self.held is None or not self._allowed(now_s, self.held[0]):
+            return None
+        return self._send(now_s, *self.held)
+
+
 @dataclass
 class PendingCommand:
     what: str
@@ -342,6 +413,7 @@ class LiveCompanion:
         self.tilt_limit = cfg.controller.tilt_limit_rad
         self.commander = Commander()
         self.monitor = HoldMonitor()
+        self.texts = TextLimiter()
         self.counters: Counter[str] = Counter()
         self.tlog = RecordStamps(TlogWriter(tlog), wall, clock) if tlog else None
         self.tlog_path = tlog
@@ -401,9 +473,20 @@ class LiveCompanion:
             for buf in bufs:
                 self.tlog.write(buf)
 
-    def _statustext(self, text: str, severity: int) -> None:
-        self._send(link.statustext(self.conn.mav, text, severity))
-        self.out(text)
+    def _statustext(self, text: str, severity: int, console: str | None = None) -> None:
+        """Say ``text`` to the ground station (STATUSTEXT from component 191, rate limited by
+        ``TextLimiter``) and on the console (``console`` if given: it may say more than 50 characters)."""
+        self.out(console or text)
+        said = self.texts.offer(self.clock(), text, severity)
+        if self.texts.dropped:
+            self.counters["status texts dropped (rate limit)"] = self.texts.dropped
+        if said is not None:
+            self._send(link.statustext(self.conn.mav, *said))
+
+    def _poll_texts(self, now: float) -> None:
+        said = self.texts.poll(now)
+        if said is not None:
+            self._send(link.statustext(self.conn.mav, *said))
 
     def _send_command(self, p: PendingCommand) -> None:
         self._send(link.command_long(self.conn.mav, self.router.vehicle_sysid or 1, self.vehicle_compid,
@@ -588,14 +671,17 @@ class LiveCompanion:
             self.control_start = now if self.control_start is None else self.control_start
             self.flow_ref_s = self.last_flow_time_s
             self.last_flow_wall = max(self.last_flow_wall, now)  # the flow timeout runs from the takeover
-            self.out("flowhold: in control (armed, GUIDED_NOGPS)")
+            self._statustext("flowhold: in control (GUIDED_NOGPS)", mav.MAV_SEVERITY_NOTICE,
+                             console="flowhold: in control (armed, GUIDED_NOGPS)")
             if self.last_flow_time_s is not None:  # take over from level at the latest frame
                 sp = self._effective_setpoint(now)
                 self._command(self.last_flow_time_s, 0.0, 0.0, sp[0], sp[1], now, estimate=None)
         elif not want and self.in_control:
             self.in_control = False
-            self.out(f"flowhold: released control ({'armed' if self.armed else 'disarmed'}, "
-                     f"{link.mode_name(self.mode)})")
+            why = link.mode_name(self.mode) if self.armed else "disarmed"
+            self._statustext(f"flowhold: released control ({why})", mav.MAV_SEVERITY_NOTICE,
+                             console=f"flowhold: released control ({'armed' if self.armed else 'disarmed'}, "
+                                     f"{link.mode_name(self.mode)})")
 
     def _effective_setpoint(self, now: float) -> tuple[float, float]:
         if self.gcs_setpoint is None:
@@ -754,6 +840,7 @@ class LiveCompanion:
         while not self.stop_requested:
             now = self.clock()
             self._heartbeat(now)
+            self._poll_texts(now)
             self.commander.poll(now, self._send_command)
             while self.commander.warnings:
                 self.out(f"flowhold: warning: {self.commander.warnings.pop(0)}")

@@ -588,6 +588,62 @@ def test_frame_order_safe_attitude_and_hold_texts():
             parse_setpoint(bad)
 
 
+def test_text_limiter_holds_back_a_flapping_cause_and_ends_with_the_current_state():
+    from companion.live import STATUSTEXT_LEN, TextLimiter
+
+    lim = TextLimiter(repeat_s=1.0, burst=4, rate_hz=2.0)
+    hold, ok = "flowhold: HOLD flow quality 0", "flowhold: resumed"
+    # a cause that comes and goes every frame: each text once, then held back
+    sent = [lim.offer(0.02 * k, hold if k % 2 == 0 else ok, 4 if k % 2 == 0 else 5) for k in range(20)]
+    assert sent[:2] == [(hold, 4), (ok, 5)] and sent[2:] == [None] * 18
+    assert lim.poll(0.5) is None  # the same text again within repeat_s
+    assert lim.poll(1.1) == (ok + " (+17 held back)", 5)  # the latest state, and how many never went out
+    assert lim.poll(5.0) is None and lim.dropped == 17
+    # a new cause is said at once, even right after another one
+    assert lim.offer(5.0, "flowhold: HOLD flow spike", 4) == ("flowhold: HOLD flow spike", 4)
+    assert lim.offer(5.02, "flowhold: HOLD range stale", 4) == ("flowhold: HOLD range stale", 4)
+    # many causes at once: the token bucket caps them; the count survives a long text's cut
+    lim = TextLimiter(repeat_s=1.0, burst=2, rate_hz=1.0)
+    texts = [f"{'y' * 48}{k}" for k in range(5)]
+    assert [lim.offer(0.0, t, 4) for t in texts] == [(texts[0], 4), (texts[1], 4), None, None, None]
+    text, _sev = lim.poll(1.0)
+    assert len(text) == STATUSTEXT_LEN and text.endswith(" (+2 held back)")
+
+
+def test_companion_announces_control_holds_and_release_to_the_gcs(tmp_path):
+    """Issue 14: README and docs/ardupilot.md say the companion announces taking and releasing
+    control as STATUSTEXT; it only printed them. Over UDP, a ground station receives from (1, 191):
+    in control (NOTICE), a hold with its cause (WARNING), resumed (NOTICE), released (NOTICE)."""
+    with Procs(tmp_path) as procs:
+        _veh, port = procs.vehicle()
+        gcs = Gcs(port)
+        try:
+            gcs.wait_vehicle()
+            gcs.quiet()
+            procs.companion(port, "--arm", "--quiet")
+
+            def text(needle):
+                return gcs.recv("STATUSTEXT", timeout_s=60, cond=lambda m: needle in m.text)
+
+            m = text("flowhold: in control")
+            assert (m.get_srcSystem(), m.get_srcComponent()) == (1, 191)
+            assert (m.text, m.severity) == ("flowhold: in control (GUIDED_NOGPS)", mav.MAV_SEVERITY_NOTICE)
+            gcs.set_param("SIM_FLOW_FAULT", 1)
+            m = text("flowhold: HOLD")
+            assert (m.text, m.severity, m.get_srcComponent()) == ("flowhold: HOLD flow quality 0",
+                                                                  mav.MAV_SEVERITY_WARNING, 191)
+            gcs.set_param("SIM_FLOW_FAULT", 0)
+            m = text("flowhold: resumed")
+            assert (m.severity, m.get_srcComponent()) == (mav.MAV_SEVERITY_NOTICE, 191)
+            ack = gcs.command(mav.MAV_CMD_DO_SET_MODE, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 2)  # ALT_HOLD
+            assert ack.result == mav.MAV_RESULT_ACCEPTED
+            m = text("flowhold: released control")
+            assert (m.text, m.severity, m.get_srcComponent()) == ("flowhold: released control (ALT_HOLD)",
+                                                                  mav.MAV_SEVERITY_NOTICE, 191)
+        finally:
+            gcs.close()
+
+
 def test_stream_schedule_and_faults_are_pure(paper_cfg):
     from simvehicle.server import FlowFault, GyroFault, RangeFault, StreamSchedule, faulted_sensors
     from simvehicle.sim import Simulator

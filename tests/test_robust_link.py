@@ -479,6 +479,48 @@ def test_companion_flies_on_through_garbage_floods_and_strangers(fake_pair):
     assert s["ignored: setpoint beyond max_speed_m_s (clipped)"] == 12
 
 
+def test_a_flapping_cause_cannot_flood_the_link_with_statustext(fake_pair):
+    """Flow quality 0 every other frame for 200 frames: without a limit the companion would send a
+    STATUSTEXT each frame (HOLD, resumed, HOLD, ...). It says each once per TEXT_REPEAT_S
+    (companion.live.TextLimiter), and once the flow is good again the last text tells the ground
+    station the current state, with how many texts it held back."""
+    import dataclasses
+
+    from companion.live import TEXT_REPEAT_S
+
+    fv, procs = fake_pair
+    comp = procs.companion(fv.port, "--quiet", "--profile", "paper")
+    fv.wait_companion()
+    fv.fly(50)
+
+    def texts() -> list[Any]:
+        return [m for m in fv.received if m.get_type() == "STATUSTEXT" and m.get_srcComponent() == COMPANION_COMPONENT]
+
+    n0 = len(texts())
+    t0 = time.monotonic()
+    rf = fv.cfg.rangefinder
+    for k in range(200):
+        s = dataclasses.replace(fv.sim.current, flow_quality=0 if k % 2 == 0 else 255)
+        fv.send(b"".join(packed(m, fv.enc) for m in telemetry.frame_messages(
+            fv.enc, s, Profile.PAPER, fv.cfg.flow_sensor.q_rad_per_count, fv.sim.T, rf.min_m, rf.max_m)))
+        if not fv.pump(time.monotonic() + 1.0, int(round(fv.sim.t_s * 1e3))):
+            fv.missed += 1
+        fv.sim.advance(*fv.cmd)
+    elapsed = time.monotonic() - t0
+    flapping = texts()[n0:]
+    assert len(flapping) <= 2 * (elapsed / TEXT_REPEAT_S + 2), [m.text for m in flapping]
+    assert sum("HOLD flow quality 0" in m.text for m in flapping) >= 1
+    deadline = time.monotonic() + 10.0  # good frames, until a token comes back for what was held back
+    while time.monotonic() < deadline and "held back)" not in texts()[-1].text:
+        fv.fly(5)
+    last = texts()[-1]
+    assert re.fullmatch(r"flowhold: resumed \(\+\d+ held back\)", last.text), last.text
+    assert last.severity == mav.MAV_SEVERITY_NOTICE
+    assert fv.missed == 0
+    assert comp.stop() == 0
+    assert _summary(comp)["status texts dropped (rate limit)"] > 100
+
+
 def test_signed_companion_takes_only_signed_data_from_its_vehicle(tmp_path, paper_cfg):
     """``--signing-key`` and ``--vehicle-sysid 1``: spoofed frames with spikes (unsigned, signed
     with another key, or a signed frame replayed) and signed ones from system 7 never reach the
