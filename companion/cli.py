@@ -54,11 +54,13 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--plot", help="PNG of setpoint, estimate, truth, commands and flow counts")
     replay.add_argument("--gyro", choices=("auto", "imu", "flow"), default=None,
                         help="body rate for eq. 15: imu = RAW_IMU/SCALED_IMU/HIGHRES_IMU nearest the frame; "
-                             "flow = the flow message's own body rate; auto (default) = flow for ardupilot, "
-                             "imu otherwise (docs/ardupilot.md); default: the config's companion.gyro_source")
+                             "flow = the flow message's own body rate; auto = flow for ardupilot, imu otherwise "
+                             "(docs/ardupilot.md); default: the config's companion.gyro_source (auto in "
+                             "configs/paper.toml)")
     replay.add_argument("--filter", choices=("none", "tilt"), default=None,
                         help="velocity filter: none (eq. 15 as is) or tilt (attitude-predicted two-state "
-                             "observer, companion.core.TiltFilter); default: the config's companion.velocity_filter")
+                             "observer, companion.core.TiltFilter); default: the config's companion.velocity_filter "
+                             "(none in configs/paper.toml)")
 
     info = sub.add_parser("info", help="summarise a recording")
     _add_recording(info)

@@ -15,11 +15,14 @@ def build_parser() -> argparse.ArgumentParser:
                                                  "vehicle, parameter sweeps.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="{scenario,serve,sweep}")
     sc = sub.add_parser("scenario", help="run one of the paper's scenarios in simulation time")
-    sc.add_argument("name", choices=["step", "gust", "slow", "rail", "triangle"])
+    sc.add_argument("name", choices=["step", "gust", "slow", "rail", "triangle"],
+                    help="step (0 -> 2 m/s at 5 s, Fig. 16), gust (4 N headwind from 5 s, Fig. 17), slow "
+                         "(0 -> 1 cm/s at 2 s, Fig. 18-19): closed loop; rail (Table V) and triangle (Fig. 9): "
+                         "the flow sensor moved open loop")
     sc.add_argument("--config", help="parameter set (TOML); default configs/paper.toml")
     sc.add_argument("--profile", choices=["paper", "ardupilot", "px4"], default="paper",
                     help="sensor message convention of the recording (default paper)")
-    sc.add_argument("--seed", type=int, default=0, help="seed of the noise generator")
+    sc.add_argument("--seed", type=int, default=0, help="seed of the noise generator (default 0)")
     sc.add_argument("--tlog", help="write the run as a MAVLink recording")
     sc.add_argument("--plot", help="write the paper's figure for the run (PNG)")
     sc.add_argument("--json", help="write the measured figures of merit (JSON); '-' for stdout")
@@ -27,15 +30,20 @@ def build_parser() -> argparse.ArgumentParser:
     sv = sub.add_parser("serve", help="a simulated vehicle speaking MAVLink on one UDP port")
     sv.add_argument("--listen", default="127.0.0.1:14550", help="HOST:PORT to bind (default 127.0.0.1:14550)")
     sv.add_argument("--config", help="parameter set (TOML)")
-    sv.add_argument("--profile", choices=["paper", "ardupilot", "px4"], default="paper")
+    sv.add_argument("--profile", choices=["paper", "ardupilot", "px4"], default="paper",
+                    help="sensor message convention the vehicle speaks (CONVENTIONS.md): paper = OPTICAL_FLOW "
+                         "counts, ardupilot = OPTICAL_FLOW rates with time_usec in ms, px4 = OPTICAL_FLOW_RAD "
+                         "(default paper)")
     mode = sv.add_mutually_exclusive_group()
-    mode.add_argument("--speedup", type=float, default=1.0, help="run X times faster than real time")
+    mode.add_argument("--speedup", type=float, default=1.0,
+                      help="run X times faster than real time (default 1: real time)")
     mode.add_argument("--lockstep", action="store_true",
                       help="advance one frame per companion setpoint (deterministic, as fast as the CPU)")
     sv.add_argument("--tlog", help="record everything sent and received")
-    sv.add_argument("--seed", type=int, default=0)
+    sv.add_argument("--seed", type=int, default=0,
+                    help="seed of the noise generator (gyro noise, turbulence; default 0)")
     sv.add_argument("--signing-key", help="MAVLink 2 signing: a passphrase or a file holding the key")
-    sv.add_argument("--sysid", type=int, default=1, help="the vehicle's MAVLink system id")
+    sv.add_argument("--sysid", type=int, default=1, help="the vehicle's MAVLink system id (default 1)")
     sv.add_argument("--duration", type=float, help="stop after this many simulated seconds")
     sv.add_argument("--scenario", choices=["step", "gust", "slow"],
                     help="fly a paper scenario's schedule: its external force, and its velocity setpoints "
@@ -43,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sw = sub.add_parser("sweep", help="figures of merit across a parameter grid (all cores)")
     sw.add_argument("sweep_config", help="sweep definition (TOML), e.g. configs/sweeps/altitude_q.toml")
-    sw.add_argument("--out", default="out/sweep", help="folder for the table (CSV) and the plot")
+    sw.add_argument("--out", default="out/sweep", help="folder for the table (CSV) and the plot (default out/sweep)")
     sw.add_argument("--workers", type=int, help="processes (default: all cores)")
     return parser
 
