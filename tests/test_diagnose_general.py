@@ -240,3 +240,21 @@ def test_arducopter_sitl_flights_give_the_simulators_drag(name):
     assert sig["linear_drag"].parameters["b"] == pytest.approx(0.82, rel=0.10)
     assert "attitude_dynamics" in sig and sig["attitude_dynamics"].parameters["omega_p"] > 5.4 * 1.5
     assert not {"wind_force", "gyro_bias", "flow_scale", "flow_yaw_misalignment"} & set(sig), sorted(sig)
+
+
+def test_a_constant_force_row_gives_a_finite_wind_window():
+    """A vehicle at rest on one axis: that axis' force residual is constant. The window's end
+    uncertainties must still be numbers (a 0/0 correlation made them NaN, and a warning)."""
+    from companion.diagnose.wind import locate, null_pvalue
+
+    t = np.arange(0.0, 60.0, 0.02)
+    h = 5
+    k0 = 55 + 50 * np.arange(50)
+    k1 = k0 + 50
+    e = np.zeros((2, len(k0)))
+    e[0, 20:35] = -1.0  # a 1 N force from window 20 to 34 on x; y exactly zero
+    w = locate(e, t, k0, k1, h)
+    assert w is not None and math.isfinite(w.start_sd) and math.isfinite(w.end_sd)
+    assert w.fx_n == pytest.approx(-1.0, rel=0.05) and w.fy_n == 0.0
+    assert w.start_s == pytest.approx(t[k0[20]], abs=1.0) and w.end_s == pytest.approx(t[k1[34]], abs=1.0)
+    assert null_pvalue(e, t, k0, k1) <= 0.01

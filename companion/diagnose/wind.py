@@ -128,7 +128,10 @@ def locate(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: in
     x = kernel_regressor(t_s, k0, k1, h, start, end) * w
     r = (e - f[0][:, None] * x)[:, w > 0]
     var = float(np.mean(r ** 2))
-    rho = float(np.mean([np.corrcoef(ri[1:], ri[:-1])[0, 1] for ri in r])) if r.shape[1] > 3 else 0.0
+    # a residual row that is constant (a vehicle at rest) has no correlation to speak of
+    rhos = [np.corrcoef(ri[1:], ri[:-1])[0, 1] for ri in r if r.shape[1] > 3 and np.std(ri[1:]) > 0
+            and np.std(ri[:-1]) > 0]
+    rho = float(np.mean(rhos)) if rhos else 0.0
     var *= 1.0 + 2.0 * max(rho, 0.0) / max(1.0 - max(rho, 0.0), 0.1)
     fine = max(float(np.median(np.diff(t_s))), 1e-3)
 
@@ -200,7 +203,8 @@ def null_pvalue(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, 
     x = x[:, use]
     span = float(np.median(b1 - b0))
     lag_s = NULL_BLOCK_S
-    rho = float(np.mean([np.corrcoef(xi[1:], xi[:-1])[0, 1] for xi in x if np.std(xi) > 0] or [0.0]))
+    rho = float(np.mean([np.corrcoef(xi[1:], xi[:-1])[0, 1] for xi in x
+                         if np.std(xi[1:]) > 0 and np.std(xi[:-1]) > 0] or [0.0]))
     if 0.0 < rho < 1.0:
         lag_s = max(lag_s, -3.0 * span / math.log(rho))
     L = min(max(1, int(round(lag_s / max(span, 1e-6)))), x.shape[1] - 1)
