@@ -104,7 +104,9 @@ def test_flow_spike_holds_one_frame(session):
     gcs = session.gcs
     gcs.set_param("SIM_FLOW_FAULT", 3)  # 500 counts once (39 rad/s), beyond companion.max_flow_rate_rad_s = 7.4
     targets, seen_text, after = [], False, 0
+    deadline = time.monotonic() + 30.0  # the loop's own deadline: a lost STATUSTEXT must fail, not hang
     while after < 4:  # the vehicle's targets around the STATUSTEXT
+        assert time.monotonic() < deadline, "no 'HOLD flow spike' STATUSTEXT within 30 s"
         m = gcs.recv(("ATTITUDE_TARGET", "STATUSTEXT"), timeout_s=30)
         if m.get_type() == "STATUSTEXT":
             seen_text = seen_text or "flowhold: HOLD flow spike" in m.text
