@@ -30,7 +30,7 @@ from companion.diagnose.channels import FlightData
 #: a run of at least this many lost (bridged) commands restarts the attitude simulation, and so
 #: does a single one across which the command jumps by more than ``RESTART_JUMP_RAD`` (a setpoint
 #: step: interpolation cannot know where the jump fell)
-RESTART_AFTER_LOST = 2
+RESTART_AFTER_LOST = 1
 RESTART_JUMP_RAD = 0.02
 
 
@@ -105,11 +105,20 @@ class AttitudeProblem:
             cuts.append(b)
             cuts = sorted(set(c for c in cuts if a <= c <= b))
             self.segments += [(c0, c1) for c0, c1 in zip(cuts[:-1], cuts[1:], strict=True) if c1 - c0 >= 2]
-        # initial rate of each segment from the recorded attitude (one-sided difference)
+        # initial rate of each segment from the recorded attitude: the three-point one-sided
+        # difference (a two-point one gives the rate half a frame late, and a simulation restarted
+        # often, after lost commands, would read that as a loop that answers early)
         self.rate0 = []
+        t = data.t_s
         for a, b in self.segments:
-            k = min(a + 1, b - 1)
-            self.rate0.append((self.y[:, k] - self.y[:, a]) / max(data.t_s[k] - data.t_s[a], 1e-6))
+            if b - a >= 3:
+                h1, h2 = t[a + 1] - t[a], t[a + 2] - t[a]
+                y0, y1, y2 = self.y[:, a], self.y[:, a + 1], self.y[:, a + 2]
+                # derivative at t_a of the parabola through the three samples
+                self.rate0.append((y1 - y0) * h2 / (h1 * (h2 - h1)) - (y2 - y0) * h1 / (h2 * (h2 - h1)))
+            else:
+                k = min(a + 1, b - 1)
+                self.rate0.append((self.y[:, k] - self.y[:, a]) / max(t[k] - t[a], 1e-6))
 
     def delayed_command(self, delay_s: float) -> np.ndarray:
         """The command shifted by ``delay_s`` (fractional frames: frame-averaged), per segment."""
@@ -146,11 +155,37 @@ class AttitudeProblem:
                 out[i, s0:s1], _ = signal.lfilter(b, a, us, zi=zi)
         return out
 
+    def _free_rate(self, e: np.ndarray, omega_p: float, zeta: float, fit_mask: np.ndarray | None) -> np.ndarray:
+        """Each segment's starting rate as a nuisance: its free response (the loop's answer to a
+        unit initial rate, no command) is fitted out of the segment's residual. A restart after
+        lost commands takes its rate from three recorded attitudes, which a command that jumps
+        every frame makes inexact; a wrong start would otherwise read as a loop answering early."""
+        Ad, _Bd, b, a = discretise(omega_p, zeta, self.T)
+        L = max(s1 - s0 for s0, s1 in self.segments)
+        Ainv = np.linalg.inv(Ad)
+        xm1 = Ainv @ np.array([0.0, 1.0])
+        xm2 = Ainv @ xm1
+        zi = signal.lfiltic(b, a, [xm1[0], xm2[0]], [0.0, 0.0])
+        h, _ = signal.lfilter(b, a, np.zeros(L), zi=zi)
+        out = e.copy()
+        for s0, s1 in self.segments:
+            hs = h[: s1 - s0]
+            m = np.ones(s1 - s0, dtype=bool) if fit_mask is None else fit_mask[s0:s1]
+            m = m & np.all(np.isfinite(e[:, s0:s1]), axis=0)
+            den = float(hs[m] @ hs[m])
+            if den <= 0:
+                continue
+            for i in (0, 1):
+                out[i, s0:s1] -= (float(e[i, s0:s1][m] @ hs[m]) / den) * hs
+        return out
+
     def residual(self, omega_p: float, zeta: float, delay_s: float = 0.0,
                  fit_mask: np.ndarray | None = None) -> np.ndarray:
         """Recorded minus simulated attitude (2, n), rad, with each axis' constant offset removed
         (the offset estimated on ``fit_mask`` frames, all frames by default)."""
         e = self.y - self.simulate(omega_p, zeta, delay_s)
+        if len(self.segments) > 1 and omega_p > 0 and zeta > 0:
+            e = self._free_rate(e, omega_p, zeta, fit_mask)
         sub = e if fit_mask is None else e[:, fit_mask]
         ok = np.isfinite(sub)
         n = ok.sum(axis=1, keepdims=True)
