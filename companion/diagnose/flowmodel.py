@@ -123,7 +123,7 @@ class FlowProblem:
     """
 
     def __init__(self, data: FlightData, *, mass_kg: float, gravity_m_s2: float, flow_window_s: float = 1.0,
-                 force_window_s: float = 1.0, average_s: float = 0.2, max_flow_windows: int = 1500,
+                 force_window_s: float = 1.0, average_s: float = 0.2, max_flow_windows: int = 1000,
                  rotation_angles: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.data = data
         self.mass_kg = mass_kg

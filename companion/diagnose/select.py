@@ -82,6 +82,9 @@ class Settings:
     #: choose from two starting linearisations (the largest model's fit and the nominal model) and
     #: keep the choice whose exact model predicts held-out data better
     two_starts: bool = True
+    #: flights longer than this use the first start only (the time is linear in the length, and
+    #: the candidates' trade-offs that a second start resolves are pinned by that much data) (s)
+    two_starts_max_s: float = 1200.0
     #: a searched (localised) effect must beat this tail probability of its statistic under the
     #: no-effect null, calibrated on the recording itself (``Group.null_pvalue``)
     null_p_max: float = 0.01
@@ -628,7 +631,7 @@ class Selector:
                 if why:
                     reasons.append(why)
         need = self.s.min_improvement_pct
-        if all(c.matters is not None for c in cands) and z >= self.s.z_overwhelming:
+        if not localised and all(c.matters is not None for c in cands) and z >= self.s.z_overwhelming:
             need = 0.0
         if not comp.improvement_pct > need:
             where = " where it acts" if localised else ""
@@ -748,7 +751,9 @@ class Selector:
         can sit far along directions where candidates trade off (a scale, a gain and an offset;
         linear and form drag), and the linearisation there can favour the wrong one of them."""
         first = self.select_from(self.p_full)
-        if not self.s.two_starts or self._out_of_time():
+        ends = [float(t.max() - t.min()) for t in self.g.row_times if len(t)]
+        long = max(ends, default=0.0) > self.s.two_starts_max_s  # long flights pin the fit down anyway
+        if not self.s.two_starts or long or self._out_of_time():
             return first
         second = self.select_from(self.g.nominal)
         a, b = first[1], second[1]

@@ -22,7 +22,7 @@ MIN_WIND_S = 4.0
 #: the coarse search works on at most this many boundaries (longer recordings are pooled)
 MAX_COARSE = 800
 #: the null calibration's scan works on at most this many pooled windows
-MAX_NULL = 240
+MAX_NULL = 160
 #: sign-flip blocks of the null calibration (s): longer than the force residual's correlation
 NULL_BLOCK_S = 3.0
 #: bootstrap replicates of the null calibration
