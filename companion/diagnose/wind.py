@@ -62,27 +62,10 @@ def locate(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: in
     w = np.ones(nw) if mask is None else mask.astype(float)
     e = np.where(np.isfinite(e), e, 0.0) * w
     tm0, tm1 = t_s[k0], t_s[k1]
-    # coarse: pool neighbouring windows when there are many
-    pool = max(1, math.ceil(nw / MAX_COARSE))
-    m = nw // pool
-    ep = e[:, : m * pool].reshape(2, m, pool).sum(axis=2)
-    wp = w[: m * pool].reshape(m, pool).sum(axis=1)
-    b0 = tm0[: m * pool: pool]
-    b1 = tm1[pool - 1: m * pool: pool]
-    ce = np.concatenate([np.zeros((2, 1)), np.cumsum(ep, axis=1)], axis=1)
-    cw = np.concatenate([[0.0], np.cumsum(wp)])
-    # all pairs j1 < j2 at once: the window covers pooled windows j1 .. j2-1
-    j1 = np.arange(m)[:, None]
-    j2 = np.arange(1, m + 1)[None, :]
-    dur = b1[np.minimum(j2, m) - 1] - b0[j1]
-    nwt = cw[j2] - cw[j1]
-    num = ((ce[:, None, 1:] - ce[:, :-1, None]) ** 2).sum(axis=0)  # (m, m): [j1, j2-1]
-    ok = (j2 > j1) & (dur >= min_s) & (nwt > 0)
-    gain = np.where(ok, num / np.where(nwt > 0, nwt, 1.0), -1.0)
-    flat = int(np.argmax(gain))
-    bj1, bj2 = divmod(flat, m)
-    best = (float(gain[bj1, bj2]), bj1, bj2 + 1)
-    start, end = float(b0[best[1]]), float(b1[best[2] - 1])
+    # coarse: pool neighbouring windows when there are many, then every window at once
+    ep, wp, b0, b1, pool = _pool(e, w, tm0, tm1, MAX_COARSE)
+    _gain, j1, j2 = _scan(ep, wp, b0, b1, min_s)
+    start, end = float(b0[j1]), float(b1[j2 - 1])
 
     lo_sup = t_s[k0 - h]  # each window's kernel support
     hi_sup = t_s[k1 + h]
@@ -148,6 +131,16 @@ def locate(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: in
     return WindWindow(start, end, float(f[0, 0]), float(f[0, 1]), float(gains[0]), start_sd, end_sd)
 
 
+def _pool(e: np.ndarray, w: np.ndarray, tm0: np.ndarray, tm1: np.ndarray, max_m: int
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Neighbouring force windows summed in groups so that at most ``max_m`` remain: the pooled
+    residual sums (2, m), weights (m,), start and end times (m,), and the group size."""
+    pool = max(1, math.ceil(e.shape[1] / max_m))
+    m = e.shape[1] // pool
+    return (e[:, : m * pool].reshape(2, m, pool).sum(axis=2), w[: m * pool].reshape(m, pool).sum(axis=1),
+            tm0[: m * pool: pool], tm1[pool - 1: m * pool: pool], pool)
+
+
 def _scan(ep: np.ndarray, wp: np.ndarray, b0: np.ndarray, b1: np.ndarray, min_s: float) -> tuple[float, int, int]:
     """Largest explained sum of squares of one mean shift over pooled windows j1..j2-1 lasting at
     least ``min_s``: (gain, j1, j2). ``ep`` (2, m) pooled residual sums, ``wp`` (m,) weights."""
@@ -183,14 +176,9 @@ def null_pvalue(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, 
     w = np.ones(nw) if mask is None else mask.astype(float)
     e = np.where(np.isfinite(e), e, 0.0) * w
     tm0, tm1 = t_s[k0], t_s[k1]
-    pool = max(1, math.ceil(nw / MAX_NULL))
-    m = nw // pool
-    if m < 4:
+    ep, wp, b0, b1, _pool_n = _pool(e, w, tm0, tm1, MAX_NULL)
+    if ep.shape[1] < 4:
         return 1.0
-    ep = e[:, : m * pool].reshape(2, m, pool).sum(axis=2)
-    wp = w[: m * pool].reshape(m, pool).sum(axis=1)
-    b0 = tm0[: m * pool: pool]
-    b1 = tm1[pool - 1: m * pool: pool]
     observed, j1, j2 = _scan(ep, wp, b0, b1, min_s)
     if observed <= 0:
         return 1.0
