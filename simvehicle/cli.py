@@ -39,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="run X times faster than real time (default 1: real time)")
     mode.add_argument("--lockstep", action="store_true",
                       help="advance one frame per companion setpoint (deterministic, as fast as the CPU)")
+    sv.add_argument("--max-speedup", type=float,
+                    help="with --lockstep: never run more than X times faster than real time (a ground "
+                         "station or a test reading the streams keeps up; default: no cap)")
     sv.add_argument("--tlog", help="record everything sent and received")
     sv.add_argument("--seed", type=int, default=0,
                     help="seed of the noise generator (gyro noise, turbulence; default 0)")

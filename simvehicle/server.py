@@ -21,7 +21,9 @@ Timing (CONVENTIONS.md: the command computed from frame k acts from frame k+1):
   ``time_boot_ms`` is frame k's time (stale ones are ignored) and advances at once; if none comes
   within ``LOCKSTEP_WAIT_S`` of wall time (companion not running, not armed in GUIDED_NOGPS) it
   advances anyway with the GUID_TIMEOUT rule applied in simulated time. The simulated clock
-  starts when the first peer is heard.
+  starts when the first peer is heard. ``--max-speedup X`` caps it at X times real time (frame k
+  not before wall time ``t_k / X``), so that a reader of the streams slower than the loop (a
+  ground station, a test) is not left behind with a socket that overflows.
 
 The vehicle's recording is stamped with simulated time, so a lockstep recording has the same
 time axis as a real-time one: in real time from the UNIX time at start; in lockstep and
@@ -781,11 +783,14 @@ class UdpVehicle:
     """Serve a ``Vehicle`` on one UDP port; see the module docstring for the timing rules."""
 
     def __init__(self, vehicle: Vehicle, host: str, port: int, *, lockstep: bool = False, speedup: float = 1.0,
-                 duration_s: float | None = None, tlog: str | Path | None = None, key: bytes | None = None,
+                 max_speedup: float | None = None, duration_s: float | None = None,
+                 tlog: str | Path | None = None, key: bytes | None = None,
                  log: Callable[[str], None] | None = None, clock: Callable[[], float] = time.monotonic) -> None:
         self.v = vehicle
         self.lockstep = lockstep
         self.speedup = speedup
+        #: lockstep: never faster than this many times real time (None: as fast as the companion)
+        self.max_speedup = max_speedup
         self.duration_s = duration_s
         self.key = key
         self.clock = clock
@@ -1015,6 +1020,12 @@ class UdpVehicle:
                 self.pump(self.clock() + LOCKSTEP_WAIT_S, lambda: self.v.cmd_for_frame)
                 if not self.v.cmd_for_frame:
                     self.counters["lockstep frames without a command"] += 1
+                if self.max_speedup is not None:
+                    due = start + (self.v.sim.frame - n0 + 1) * self.v.T / self.max_speedup
+                    if self.clock() < due:
+                        self.pump(due)
+                    else:  # behind the cap (a slow companion): the cap never makes it sprint
+                        start, n0 = self.clock(), self.v.sim.frame + 1
             else:
                 due = start + (self.v.sim.frame - n0 + 1) * self.v.T / self.speedup
                 self.pump(due)
@@ -1139,6 +1150,12 @@ def run_cli(args: Any) -> int:
     host, port = link.parse_host_port(args.listen, what="--listen")
     if not (math.isfinite(args.speedup) and args.speedup > 0):
         raise UsageError(f"--speedup must be a positive number, got {args.speedup}")
+    max_speedup = getattr(args, "max_speedup", None)
+    if max_speedup is not None:
+        if not args.lockstep:
+            raise UsageError("--max-speedup caps a --lockstep run; without --lockstep use --speedup")
+        if not (math.isfinite(max_speedup) and max_speedup > 0):
+            raise UsageError(f"--max-speedup must be a positive number, got {max_speedup}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise UsageError(f"--duration must be a positive number of seconds, got {args.duration}")
     if not 1 <= args.sysid <= 255:
@@ -1152,10 +1169,13 @@ def run_cli(args: Any) -> int:
     key = link.signing_key(args.signing_key) if args.signing_key else None
     vehicle = Vehicle(cfg, profile=Profile(args.profile), sysid=args.sysid, seed=args.seed, scenario=scenario,
                       lockstep=args.lockstep)
-    server = UdpVehicle(vehicle, host, port, lockstep=args.lockstep, speedup=args.speedup, duration_s=duration,
+    server = UdpVehicle(vehicle, host, port, lockstep=args.lockstep, speedup=args.speedup,
+                        max_speedup=max_speedup, duration_s=duration,
                         tlog=args.tlog, key=key)
     h, p = server.address[:2]
     clock = "lockstep" if args.lockstep else ("real time" if args.speedup == 1.0 else f"speedup x{args.speedup:g}")
+    if max_speedup is not None:
+        clock += f" at most x{max_speedup:g}"
     extra = f", scenario {scenario_name}" if scenario else ""
     print(f"simvehicle: listening on udp {h}:{p} ({clock}, profile {args.profile}, system {args.sysid}{extra})",
           flush=True)

@@ -38,7 +38,9 @@ class Session:
         self.procs = procs
         self.ctlog = tmp / "companion.tlog"
         self.vtlog = tmp / "vehicle.tlog"
-        self.vehicle, self.port = procs.vehicle("--lockstep", "--tlog", str(self.vtlog))
+        # lockstep at most 4x real time: the GCS here reads every ATTITUDE_TARGET and must keep up
+        # (uncapped, its socket can overflow and lose the PARAM_VALUE a test waits for)
+        self.vehicle, self.port = procs.vehicle("--lockstep", "--max-speedup", "4", "--tlog", str(self.vtlog))
         self.companion = procs.companion(self.port, "--arm", "--quiet", "--tlog", str(self.ctlog))
         self.gcs = Gcs(self.port)
         self.gcs.wait_vehicle()

@@ -391,6 +391,8 @@ def test_signed_vehicle_serves_only_signed_peers(tmp_path):
     (["-m", "companion", "run", "--connect", "udpout:127.0.0.1:9", "--setpoint", "fast"], "--setpoint"),
     (["-m", "simvehicle", "serve", "--listen", "nowhere"], "--listen: expected HOST:PORT"),
     (["-m", "simvehicle", "serve", "--speedup", "-2"], "--speedup must be a positive"),
+    (["-m", "simvehicle", "serve", "--max-speedup", "4"], "--max-speedup caps a --lockstep run"),
+    (["-m", "simvehicle", "serve", "--lockstep", "--max-speedup", "0"], "--max-speedup must be a positive"),
 ])
 def test_bad_command_lines_fail_in_one_line(argv, needle):
     r = subprocess.run([PY, *argv], capture_output=True, text=True, timeout=60, cwd=REPO)

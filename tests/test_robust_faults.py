@@ -36,6 +36,7 @@ import pytest
 from loop_helpers import Gcs, Procs
 from test_robust_link import LEAN_RAD, FakeVehicle
 
+from companion.live import TEXT_REPEAT_S
 from companion.outbound import quaternion_to_euler
 
 WIND_N = 2.0
@@ -51,6 +52,8 @@ COUNT_RAD = KP * Q_RAD / T_S * ALT_M
 #: chatter of steady flight has periods longer than the band), plus 0.1 deg: 1.9 deg. A kick is
 #: far beyond: the 3 m range reading would be 11.5 deg, the 80-count spike the 20 deg limit
 BAND_TOL_RAD = 2 * COUNT_RAD + math.radians(0.1)
+#: the flight's cap on lockstep speed (times real time)
+LOCKSTEP_CAP = 4.0
 
 
 def _angles(at: Any) -> tuple[float, float]:
@@ -63,7 +66,11 @@ class Flight:
     that keeps only the vehicle's ATTITUDE_TARGET (the command it tracks) and STATUSTEXTs."""
 
     def __init__(self, procs: Procs) -> None:
-        self.vehicle, self.port = procs.vehicle("--lockstep")
+        # lockstep, but at most LOCKSTEP_CAP x real time: the GCS here (a Python loop sharing two
+        # cores with the vehicle and the companion) reads every ATTITUDE_TARGET; uncapped, the loop
+        # outruns it, its socket overflows (a PARAM_VALUE lost) and its view of the vehicle's clock
+        # falls behind, so a hold it ends "at once" lasts many simulated seconds
+        self.vehicle, self.port = procs.vehicle("--lockstep", "--max-speedup", str(LOCKSTEP_CAP))
         self.companion = procs.companion(self.port, "--arm", "--quiet", "--setpoint",
                                          f"{SETPOINT_M_S},{SETPOINT_M_S}")
         self.gcs = Gcs(self.port)
@@ -82,6 +89,10 @@ class Flight:
         """(min, max) on each axis of ``n`` consecutive commands once the flight has settled: a
         lean into the wind whose commands differ by no more than two counts of flow through Kp
         (the quantization chatter of steady flight)."""
+        # the companion says a cause again only TEXT_REPEAT_S of wall time after it last said it (its
+        # rate limit for the link); in lockstep the previous test's fault may be far less wall time
+        # ago, so let that pass first: each test's fault is then announced by its own text
+        self.gcs.drain(TEXT_REPEAT_S + 0.1)
         deadline = time.monotonic() + timeout_s
         while True:
             t = self.targets(n)
@@ -164,7 +175,7 @@ def _provoke_a_turn(flight: Flight, text: str, timeout_s: float = 30.0) -> list[
     while not any(text in t for t in flight.texts_since(k)):
         assert time.monotonic() < deadline, flight.texts_since(k)
         flight.gcs.velocity(vx, SETPOINT_M_S)
-        flight.gcs.drain(0.2)
+        flight.gcs.wait_time(flight.gcs.vehicle_time_s + 0.5)  # simulated time: the same turn under any load
         vx = -vx
     return flight.texts_since(k)
 
