@@ -56,6 +56,9 @@ class Finding:
     fit: Fit | None = None
     #: extra evidence for the human report (information criteria, notes); also written to JSON
     evidence: dict[str, Any] = field(default_factory=dict)
+    #: other effects that explain the recording as well (this flight cannot tell them apart):
+    #: ``{"effect", "parameters", "cv_t"}`` each, cv_t the held-out advantage of this one (< 2)
+    alternatives: list[dict[str, Any]] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -68,6 +71,8 @@ class Finding:
             "fit": self.fit.to_json() if self.fit else
             {"heldout_rms_before": None, "heldout_rms_after": None, "improvement_pct": None},
         }
+        if self.alternatives:
+            out["alternatives"] = _clean(self.alternatives)
         if self.evidence:
             out["evidence"] = _clean(self.evidence)
         return out

@@ -1160,14 +1160,27 @@ def score(truth: dict[str, Any], report: dict[str, Any]) -> dict[str, Any]:
     significant finding whose effect is not in the truth is a false finding, except a
     ``linear_drag`` for a true ``quadratic_drag`` when an unexplained entry names a velocity-squared
     term. A true ``gyro_lag`` not named but left as an unexplained gyro term that mentions a lag
-    is a hit when nothing wrong is named. RIGHT = no miss and no false finding."""
+    is a hit when nothing wrong is named. A finding that names alternatives ("X, or Y: this flight
+    cannot tell them apart", the report's ``alternatives``) hits a true effect it names, with that
+    effect's parameters, and is false only when none of its effects is true; such hits are listed
+    in ``ambiguous_hits``. RIGHT = no miss and no false finding."""
     t_eff: dict[str, dict[str, Any]] = truth.get("effects", {})
     findings = [f for f in report.get("findings", []) if f.get("significant")]
     unexplained = report.get("unexplained", []) or []
     by_name: dict[str, list[dict[str, Any]]] = {}
+    #: effects named only as an alternative of a finding ("X, or Y: this flight cannot tell them apart")
+    as_alternative: set[str] = set()
+    false_set: set[str] = set()
     for f in findings:
         by_name.setdefault(f["effect"], []).append(f)
-    false = sorted({n for n in by_name if n not in t_eff})
+        alts = f.get("alternatives") or []
+        for a in alts:
+            by_name.setdefault(a["effect"], []).append(a)
+            as_alternative.add(a["effect"])
+        named = {f["effect"], *(a["effect"] for a in alts)}
+        if not named & set(t_eff):  # an ambiguous finding is false only when no effect it names is true
+            false_set.add(f["effect"])
+    false = sorted(false_set)
     notes: list[str] = []
     if "quadratic_drag" in t_eff and "linear_drag" in false and "linear_drag" not in t_eff:
         if any(_V2.search(_text(u)) for u in unexplained):
@@ -1199,6 +1212,8 @@ def score(truth: dict[str, Any], report: dict[str, Any]) -> dict[str, Any]:
             notes.append(f"{len(cands)} significant {name} findings")
     hits = [n for n, r in effects.items() if r["outcome"] == "hit"]
     misses = [n for n, r in effects.items() if r["outcome"] == "miss"]
-    return {"effects": effects, "hits": hits, "misses": misses, "false": false,
+    ambiguous = sorted(n for n in hits
+                       if n in as_alternative or any(f.get("alternatives") for f in by_name.get(n, [])))
+    return {"effects": effects, "hits": hits, "misses": misses, "false": false, "ambiguous_hits": ambiguous,
             "right": not misses and not false, "clean": not t_eff,
             "reported": sorted(by_name), "n_unexplained": len(unexplained), "notes": notes}

@@ -420,6 +420,22 @@ def test_score_false_findings() -> None:
     assert s["right"] and s["n_unexplained"] == 1  # unexplained is not a finding
 
 
+def test_score_a_finding_that_names_alternatives() -> None:
+    """"flow_rotation_gain, or flow_scale: this flight cannot tell them apart": a hit on whichever
+    it names is true (with that one's parameters), false only when none of them is."""
+    amb = dict(finding("flow_rotation_gain", gain=1.22),
+               alternatives=[{"effect": "flow_scale", "parameters": {"scale_x": 0.83, "scale_y": 0.81},
+                              "cv_t": 0.8}])
+    s = fg.score(truth_of({"flow_scale": {"scale_x": 0.84, "scale_y": 0.82}}), {"findings": [amb]})
+    assert s["right"] and s["hits"] == ["flow_scale"] and s["ambiguous_hits"] == ["flow_scale"]
+    s = fg.score(truth_of({"flow_scale": {"scale_x": 0.90, "scale_y": 0.82}}), {"findings": [amb]})
+    assert s["misses"] == ["flow_scale"] and s["false"] == []  # named, out of tolerance
+    s = fg.score(truth_of({"range_offset": {"offset": 0.1}}), {"findings": [amb]})
+    assert s["false"] == ["flow_rotation_gain"] and s["misses"] == ["range_offset"]
+    s = fg.score(truth_of({}), {"findings": [amb]})
+    assert s["false"] == ["flow_rotation_gain"] and not s["right"]
+
+
 def test_score_quadratic_drag_alias() -> None:
     t = truth_of({"quadratic_drag": {"c": 0.3}})
     rep = {"findings": [finding("linear_drag", b=0.4)],

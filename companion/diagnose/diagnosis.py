@@ -31,6 +31,17 @@ from companion.report import Finding, Fit, Report, Unexplained, Window
 
 #: an unexplained residual this many times its channel's noise means the model does not fit
 MISFIT_TIMES_NOISE = 3.0
+#: effects that can stand in for one another where a flight does not separate them (the flow's
+#: scale and its rotation gain when the translation is weak; a range offset and a scale at one
+#: height; a lever arm and a rotation gain at one height; linear and form drag at one speed)
+ALIKE = {
+    "flow_scale": ("flow_rotation_gain", "range_offset", "flow_lever_arm"),
+    "flow_rotation_gain": ("flow_scale", "flow_lever_arm"),
+    "flow_lever_arm": ("flow_rotation_gain", "flow_scale"),
+    "range_offset": ("flow_scale",),
+    "linear_drag": ("quadratic_drag",),
+    "quadratic_drag": ("linear_drag",),
+}
 #: a sparse model must predict at least this fraction of a residual's held-out sum of squares, and
 #: what it predicts must be larger than the channel's resolution, to be reported as unexplained
 SPARSE_MIN_R2 = 0.2
@@ -269,7 +280,14 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
         for c, ch in enumerate(g.channels):
             report.baseline_rms[ch] = float(np.sqrt(np.mean(res.r_nominal[c] ** 2)))
         for e, comp in res.evidence.items():
-            report.findings.append(_finding(e, comp, res, data, cfg, cond))
+            f = _finding(e, comp, res, data, cfg, cond)
+            if comp.significant and e in ALIKE:
+                f.alternatives = _alternatives(e, res)
+                if f.alternatives:
+                    others = " or ".join(f"{a['effect']} ({_fmt(a['parameters'])})" for a in f.alternatives)
+                    f.explanation += (f" This flight cannot tell it from {others}: each predicts held-out data as "
+                                      f"well; a flight with more manoeuvring (and height changes) would.")
+            report.findings.append(f)
         _unexplained(name, res, data, ap, gp, fp, settings, report)
         report.notes.extend(res.selector.notes)
     report.findings.sort(key=lambda f: (not f.significant, -(f.fit.improvement_pct if f.fit else 0.0)))
@@ -277,6 +295,22 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
     step(STAGES[4])
     timings["report_s"] = time.perf_counter() - t
     return Diagnosis(data, cfg, report, results, ap, gp, fp, fstate, timings)
+
+
+def _fmt(p: dict[str, float]) -> str:
+    return ", ".join(f"{k} {v:.3g}" for k, v in p.items())
+
+
+def _alternatives(effect: str, res: GroupResult) -> list[dict[str, Any]]:
+    """The effects of ``ALIKE[effect]`` that explain the flight as well as ``effect`` (see
+    ``Selector.rivals``), as ``Finding.alternatives``."""
+    out = []
+    for a, score, t in res.selector.rivals(res.chosen, res.final, effect, ALIKE[effect]):
+        cand = next(c for c in res.group.candidates if c.effect == a)
+        idx = res.group.index(cand.params)
+        out.append({"effect": a, "parameters": {n: float(score.p[i]) for n, i in zip(cand.params, idx, strict=True)},
+                    "cv_t": float(t)})
+    return out
 
 
 def _finding(effect: str, comp: Comparison, res: GroupResult, data: FlightData, cfg: Config,
@@ -373,7 +407,9 @@ def headline(report: Report) -> str:
                     key=lambda u: -u.times_noise)
     parts = []
     if found:
-        parts.append(f"the model leaves out {', '.join(f.effect for f in found)}")
+        names = [f.effect + (f" (or {' or '.join(a['effect'] for a in f.alternatives)}: this flight cannot tell "
+                             "them apart)" if f.alternatives else "") for f in found]
+        parts.append(f"the model leaves out {', '.join(names)}")
     if misfit:
         u = misfit[0]
         more = f" (and {len(misfit) - 1} more stretch(es))" if len(misfit) > 1 else ""

@@ -242,6 +242,16 @@ def _positive_form_drag(p: dict[str, float]) -> str | None:
     return "a negative form drag (the air pushing the vehicle along) is not physical" if p["c"] <= 0 else None
 
 
+def _causal_flow_delay(p: dict[str, float]) -> str | None:
+    """A flow that leads the rotation it sees is not a flow delay: the sensor cannot report motion
+    before it happens. What fits a negative delay is a late rotation source (a lagging gyro or
+    attitude estimate, or their time stamps), which the unexplained section reports instead."""
+    if p["delay"] < 0:
+        return (f"a negative flow delay ({1e3 * p['delay']:.1f} ms: the flow leading the rotation it sees) is not "
+                "physical; the rotation source is late instead")
+    return None
+
+
 def _positive_drag(p: dict[str, float]) -> str | None:
     return "a negative drag (the air pushing the vehicle along) is not physical" if p["b"] <= 0 else None
 
@@ -380,7 +390,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0) -> tuple[
         candidates=[Candidate(e, ps, physical=phys, matters=threshold(e)) for e, ps, phys in (
             ("flow_scale", ("scale_x", "scale_y"), None),
             ("flow_yaw_misalignment", ("yaw",), None),
-            ("flow_delay", ("delay",), None),
+            ("flow_delay", ("delay",), _causal_flow_delay),
             ("flow_rotation_gain", ("gain",), None),
             ("range_offset", ("offset",), None),
             ("linear_drag", ("b",), _positive_drag),

@@ -544,19 +544,8 @@ class Selector:
                 st = self.g.state()
                 s0, s1 = st.get("start_s", -math.inf), st.get("end_s", math.inf)
                 active = [a & (t >= s0) & (t <= s1) for a, t in zip(active, self.g.row_times, strict=True)]
-            nb = int(max((int(b.max()) for b in self.cvblocks if len(b)), default=0)) + 1
-            per = np.zeros(nb)
-            have = np.zeros(nb, dtype=bool)
-            for c in range(len(self.g.channels)):
-                if len(self.cvblocks[c]) == 0:
-                    continue
-                use = np.ones(len(self.cvblocks[c]), dtype=bool) if active is None else active[c]
-                if not np.any(use):
-                    continue
-                d = (np.nan_to_num(without.heldout_rows[c]) ** 2 - np.nan_to_num(with_.heldout_rows[c]) ** 2) \
-                    / self.sigma[c] ** 2
-                per += np.bincount(self.cvblocks[c][use], weights=d[use], minlength=nb)
-                have |= np.bincount(self.cvblocks[c][use], minlength=nb) > 0
+            per, have = self._block_gain(with_, without, active)
+            nb = len(per)
             if active is not None and self.g.state is not None:
                 # the blocks that hold the window's ends test where it starts and stops (a fold
                 # holding one out cannot place that end), not the force: left out here
@@ -640,6 +629,57 @@ class Selector:
         comp.reasons = reasons
         comp.significant = not reasons
         return comp
+
+    def _block_gain(self, with_: ModelScore, without: ModelScore,
+                    active: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Per time block, the held-out weighted SSE of ``without`` minus that of ``with_`` (exact
+        scores), over the rows of ``active`` (all rows when None); and which blocks hold any row."""
+        assert with_.heldout_rows is not None and without.heldout_rows is not None
+        nb = int(max((int(b.max()) for b in self.cvblocks if len(b)), default=0)) + 1
+        per = np.zeros(nb)
+        have = np.zeros(nb, dtype=bool)
+        for c in range(len(self.g.channels)):
+            if len(self.cvblocks[c]) == 0:
+                continue
+            use = np.ones(len(self.cvblocks[c]), dtype=bool) if active is None else active[c]
+            if not np.any(use):
+                continue
+            d = (np.nan_to_num(without.heldout_rows[c]) ** 2 - np.nan_to_num(with_.heldout_rows[c]) ** 2) \
+                / self.sigma[c] ** 2
+            per += np.bincount(self.cvblocks[c][use], weights=d[use], minlength=nb)
+            have |= np.bincount(self.cvblocks[c][use], minlength=nb) > 0
+        return per, have
+
+    def rivals(self, chosen: Sequence[str], final: ModelScore, effect: str,
+               alternatives: Sequence[str]) -> list[tuple[str, ModelScore, float]]:
+        """The effects among ``alternatives`` that explain this flight as well as ``effect`` does:
+        the chosen model with ``effect`` swapped for the alternative (refitted exactly) predicts
+        held-out data no worse than ``final`` by a paired t over the time blocks below
+        ``cv_t_min``, and better than the model without either. Each as (effect, its score, t),
+        t > 0 when ``effect`` predicts better. A flight that does not separate two effects (a flow
+        scale and a rotation gain when the translation is too weak to show) must say so, not name
+        one of them as if it knew."""
+        names = {c.effect for c in self.g.candidates}
+        rest = [x for x in chosen if x != effect]
+        out: list[tuple[str, ModelScore, float]] = []
+        alts = [a for a in alternatives if a in names and a not in chosen]
+        if not alts or self._out_of_time():
+            return out
+        without = self.score_exact(rest, final.p)
+        for a in alts:
+            alt = self.score_exact([*rest, a], final.p)
+            if not alt.cv_sse < without.cv_sse:
+                continue
+            per, have = self._block_gain(final, alt)
+            diff = per[have]
+            if len(diff) < 2:
+                continue
+            sd = float(np.std(diff, ddof=1))
+            mean = float(np.mean(diff))
+            t = mean / (sd / math.sqrt(len(diff))) if sd > 0 else (math.inf if mean > 0 else -math.inf)
+            if t < self.s.cv_t_min:
+                out.append((a, alt, t))
+        return out
 
     def _null_p(self, p_with: np.ndarray, p_without: np.ndarray) -> float:
         assert self.g.null_pvalue is not None

@@ -77,6 +77,8 @@ def stlsq_gram(G: np.ndarray, b: np.ndarray, n: int, threshold: float, ridge: fl
 def sparse_fit(y: np.ndarray, terms: list[Term], folds: np.ndarray, K: int) -> SparseFit:
     """STLSQ of ``y`` on ``terms`` with the threshold chosen by held-out error over ``folds``."""
     ok = np.isfinite(y)
+    if not np.any(ok):  # a channel with no finite row (nothing to explain): no term, no warning
+        return SparseFit([], np.zeros(0), 0.0, 0.0, None, 0.0, 0.0)
     cols = [t for t in terms if np.all(np.isfinite(t.values[ok])) and np.std(t.values[ok]) > 0]
     ys = np.sqrt(np.mean(y[ok] ** 2)) if np.any(ok) else 0.0
     if not cols or ys <= 0:
