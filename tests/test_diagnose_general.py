@@ -271,3 +271,20 @@ def test_a_constant_force_row_gives_a_finite_wind_window():
     assert w.fx_n == pytest.approx(-1.0, rel=0.05) and w.fy_n == 0.0
     assert w.start_s == pytest.approx(t[k0[20]], abs=1.0) and w.end_s == pytest.approx(t[k1[34]], abs=1.0)
     assert null_pvalue(e, t, k0, k1) <= 0.01
+
+
+def test_a_wind_on_before_the_recording_starts_is_reported_from_the_first_frame(tmp_path):
+    """Flight 16 of the generalisation matrix (simvehicle.flightgen, its own seed): a 1.58 N wind
+    already blowing when the recording starts, and a 0.5 s burst of lost telemetry at 1.8 s, so no
+    force window can be formed before 3.1 s. The onset was never seen: the window is reported from
+    the first frame (CONVENTIONS.md), its start uncertainty spanning the unseen stretch, and the
+    force within the matrix's 20 %."""
+    from simvehicle.flightgen import generate
+
+    g = generate(16, tmp_path, "gen16")
+    wind = g.truth["effects"]["wind_force"]
+    rep = diagnose(load_recording(tmp_path / "gen16.tlog"), load_config(tmp_path / "gen16.toml")).report
+    f = next(f for f in rep.significant() if f.effect == "wind_force")
+    assert f.parameters["start_s"] <= 0.1 and f.uncertainty["start_s"] >= 1.0
+    err = math.hypot(f.parameters["fx"] - wind["fx"], f.parameters["fy"] - wind["fy"])
+    assert err <= 0.2 * math.hypot(wind["fx"], wind["fy"])

@@ -162,8 +162,11 @@ class FlowGroupState:
         return self.window.start_s, self.window.end_s
 
     def as_dict(self) -> dict[str, float]:
-        """The window for the report: a force on from the first force window (or to the last)
-        is on from the first usable frame (to the last), as CONVENTIONS.md states."""
+        """The window for the report: a force on from the first force window (or to the last),
+        or from a time that its uncertainty does not tell from it (2 sigma), is on from the first
+        usable frame (to the last), as CONVENTIONS.md states. When no force window could be
+        formed before the first one (lost telemetry), the onset was not seen: the window is still
+        said to start at the first frame, its uncertainty then spans the unseen stretch."""
         s, e = self.start_end
         w = self.window
         W = self.fp.force.idx
@@ -176,16 +179,14 @@ class FlowGroupState:
             segs = fp.data.segments()
             first = segs[0][0] + fp.h + fp.L2  # the first and last boundaries a flight can have
             last = segs[-1][1] - 1 - fp.h - fp.L2
-            if s <= t[W[0, 0]] + tol:
-                if W[0, 0] <= first:
-                    s = float(t[0])
-                else:  # no force window before this one (lost telemetry): the onset is not seen
-                    start_sd = max(start_sd, 0.5 * (t[W[0, 0]] - t[0]))
-            if e >= t[W[-1, 1]] - tol:
-                if W[-1, 1] >= last - fp.L2:
-                    e = float(t[-1])
-                else:
-                    end_sd = max(end_sd, 0.5 * (t[-1] - t[W[-1, 1]]))
+            if s <= t[W[0, 0]] + max(tol, 2.0 * np.nan_to_num(start_sd)):
+                if W[0, 0] > first:  # no force window before this one (lost telemetry)
+                    start_sd = max(np.nan_to_num(start_sd), 0.5 * (t[W[0, 0]] - t[0]))
+                s = float(t[0])
+            if e >= t[W[-1, 1]] - max(tol, 2.0 * np.nan_to_num(end_sd)):
+                if W[-1, 1] < last - fp.L2:
+                    end_sd = max(np.nan_to_num(end_sd), 0.5 * (t[-1] - t[W[-1, 1]]))
+                e = float(t[-1])
         return {"start_s": s, "end_s": e, "start_sd": start_sd, "end_sd": end_sd}
 
     def search(self, p: np.ndarray, masks: list[np.ndarray] | None) -> list[np.ndarray]:
