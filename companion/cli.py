@@ -1,6 +1,6 @@
-"""Command line of the companion: ``python -m companion {run,replay,info,diagnose}``.
+"""Command line of the companion: ``python -m companion {run,replay,info,diagnose,fleet}``.
 
-Each subcommand's work lives in its own module (``live``, ``replay``, ``info``, ``diagnose``);
+Each subcommand's work lives in its own module (``live``, ``replay``, ``info``, ``diagnose``, ``fleet``);
 this file only declares the arguments and turns errors into one clear line and an exit code.
 Set FLOWHOLD_DEBUG=1 to see the traceback of an unexpected error.
 """
@@ -30,8 +30,8 @@ def _add_recording(p: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m companion",
-        description="Optical-flow velocity hold beside an autopilot: live loop, replay, info, diagnose.")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,replay,info,diagnose}")
+        description="Optical-flow velocity hold beside an autopilot: live loop, replay, info, diagnose, fleet.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,replay,info,diagnose,fleet}")
 
     run = sub.add_parser("run", help="run the velocity-hold loop against a vehicle over MAVLink")
     run.add_argument("--connect", required=True,
@@ -71,6 +71,21 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(diag)
     diag.add_argument("--json", help="write the mismatch report (CONVENTIONS.md) here")
     diag.add_argument("--report", help="write a Markdown report with plots into this folder")
+
+    fleet = sub.add_parser("fleet", help="diagnose every recording of a fleet on Dask (one task per file): "
+                                         "a table, the reports and an HTML summary")
+    fleet.add_argument("inputs", nargs="+", metavar="DIR_OR_GLOB",
+                       help="folders (searched for .tlog, .bin, .ulg, .csv, each also .gz), globs or files")
+    fleet.add_argument("--out", required=True, help="folder for fleet.csv, fleet.parquet, summary.html, reports/")
+    _add_common(fleet, detected_from="each recording")
+    fleet.add_argument("--sensor-config", help="column map (TOML in configs/sensors/) for the CSV recordings")
+    fleet.add_argument("--scheduler", help="address of a running Dask scheduler, e.g. tcp://host:8786 "
+                                           "(default: a LocalCluster on this machine)")
+    fleet.add_argument("--workers", type=int, help="worker processes of the LocalCluster (default: all cores)")
+    fleet.add_argument("--in-process", action="store_true",
+                       help="no Dask: one file after another in this process (the mode without the cluster extra)")
+    fleet.add_argument("--vehicle-from", choices=("folder", "sysid"), default="folder",
+                       help="a recording's vehicle: the folder holding it, or its MAVLink system id (default folder)")
     return parser
 
 
@@ -81,6 +96,8 @@ def _dispatch(command: str) -> Callable[[argparse.Namespace], int]:
         from companion.replay import run_cli
     elif command == "info":
         from companion.info import run_cli
+    elif command == "fleet":
+        from companion.fleet import run_cli
     else:
         from companion.diagnose import run_cli
     return run_cli
