@@ -50,7 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     replay = sub.add_parser("replay", help="run the estimator and controller over a recording")
     _add_recording(replay)
     _add_common(replay)
-    replay.add_argument("--csv", required=True, help="output CSV, one row per flow frame")
+    replay.add_argument("--csv", help="output CSV, one row per flow frame (this and/or --parquet)")
+    replay.add_argument("--parquet", help="the same columns as a Parquet file (needs pyarrow: flowhold[parquet])")
     replay.add_argument("--plot", help="PNG of setpoint, estimate, truth, commands and flow counts")
     replay.add_argument("--gyro", choices=("auto", "imu", "flow"), default=None,
                         help="body rate for eq. 15: imu = RAW_IMU/SCALED_IMU/HIGHRES_IMU nearest the frame; "

@@ -71,7 +71,7 @@ from companion.core import (
     repeat_window,
     run_control,
 )
-from companion.errors import RecordingError, check_output, writing
+from companion.errors import RecordingError, UsageError, check_output, writing
 from companion.inbound import INT16_CLIP
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FlowColumns, Profile, detect_profile, flow_columns
 from companion.recording import (
@@ -605,26 +605,32 @@ def _messages(conn: Any) -> Iterator[Any]:
 # Output
 
 
-def write_csv(result: ReplayResult, path: str | Path, *, progress: bool = False) -> list[str]:
-    """Write the per-frame CSV (``CSV_COLUMNS`` present in the result; 9 significant digits, 12
-    for times; NaN as ``nan``). ``progress``: a bar on stderr for long results. Returns the
-    columns written."""
+def _csv_formats(result: ReplayResult) -> tuple[list[str], list[str]]:
+    """The CSV's column names (``CSV_COLUMNS`` present in the result, then any others) and the
+    ``%`` format of each: ``%s`` names, ``%d`` integers, ``%.12g`` times, ``%.9g`` the rest."""
     names = [c for c in CSV_COLUMNS if c in result.columns]
     names += [c for c in result.columns if c not in names]
     fmts = []
-    values = []
     for c in names:
         col = result.columns[c]
         if col.dtype == object:
             fmts.append("%s")
-            values.append(col.tolist())
         elif np.issubdtype(col.dtype, np.integer):
             fmts.append("%d")
-            values.append(col.tolist())
         else:
             fmts.append("%.12g" if c in _TIME_COLUMNS else "%.9g")
-            values.append(col.tolist())
-    row = ",".join(fmts)
+    return names, fmts
+
+
+def write_csv(result: ReplayResult, path: str | Path, *, progress: bool = False) -> list[str]:
+    """Write the per-frame CSV (``CSV_COLUMNS`` present in the result; 9 significant digits, 12
+    for times; NaN as ``nan``): the text of Python's ``%`` formatting, produced vectorised
+    (``companion.csv_format.format_rows``). ``progress``: a bar on stderr for long results.
+    Returns the columns written."""
+    from companion.csv_format import format_rows
+
+    names, fmts = _csv_formats(result)
+    values = [result.columns[c] for c in names]
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     bar = None
@@ -633,17 +639,37 @@ def write_csv(result: ReplayResult, path: str | Path, *, progress: bool = False)
 
         bar = tqdm(total=len(result), desc=f"writing {p.name}", unit="row", file=sys.stderr, leave=False)
     try:
-        with open(p, "w") as fh:
-            fh.write(",".join(names) + "\n")
-            chunk = 20_000
+        with open(p, "wb") as fh:
+            fh.write((",".join(names) + "\n").encode())
+            chunk = 65_536
             for a in range(0, len(result), chunk):
-                part = [v[a:a + chunk] for v in values]
-                fh.write("".join(row % r + "\n" for r in zip(*part, strict=True)))
+                fh.write(format_rows([v[a:a + chunk] for v in values], fmts))
                 if bar is not None:
-                    bar.update(len(part[0]))
+                    bar.update(min(chunk, len(result) - a))
     finally:
         if bar is not None:
             bar.close()
+    return names
+
+
+def write_parquet(result: ReplayResult, path: str | Path) -> list[str]:
+    """Write the per-frame columns (the CSV's, same names and order) as a Parquet file: float64
+    and integer columns as they are, ``hold_cause`` as strings. Needs pyarrow (the ``parquet``
+    extra: ``pip install 'flowhold[parquet]'``); without it a one-line ``UsageError``.
+    Returns the columns written."""
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ImportError:
+        raise UsageError("--parquet needs pyarrow: pip install 'flowhold[parquet]' (or pip install pyarrow)") from None
+    names, _ = _csv_formats(result)
+    arrays = []
+    for c in names:
+        col = result.columns[c]
+        arrays.append(pa.array(col.tolist(), type=pa.string()) if col.dtype == object else pa.array(col))
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    pq.write_table(pa.table(arrays, names=names), p)
     return names
 
 
@@ -656,7 +682,13 @@ def _options(args: argparse.Namespace, cfg: Config) -> EstimatorOptions:
 
 def run_cli(args: argparse.Namespace) -> int:
     """``python -m companion replay``: CSV (and plot) of the companion over a recording."""
-    check_output(args.csv, "--csv")
+    parquet = getattr(args, "parquet", None)
+    if not args.csv and not parquet:
+        raise UsageError("replay needs an output: --csv OUT.csv and/or --parquet OUT.parquet")
+    if args.csv:
+        check_output(args.csv, "--csv")
+    if parquet:
+        check_output(parquet, "--parquet")
     if args.plot:
         check_output(args.plot, "--plot")
     cfg = load_config(args.config)
@@ -669,14 +701,21 @@ def run_cli(args: argparse.Namespace) -> int:
         detected, why = detect_profile(rec)
         profile = Profile(detected)
     result = replay(rec, cfg, profile, _options(args, cfg))
-    with writing("--csv", args.csv):
-        names = write_csv(result, args.csv, progress=sys.stderr.isatty())
+    outputs = []
+    if args.csv:
+        with writing("--csv", args.csv):
+            names = write_csv(result, args.csv, progress=sys.stderr.isatty())
+        outputs.append(args.csv)
+    if parquet:
+        with writing("--parquet", parquet):
+            names = write_parquet(result, parquet)
+        outputs.append(parquet)
     err = sys.stderr
     print(f"profile {profile.value} ({why}); gyro {result.gyro_source.value}"
           f"{'; tilt filter' if _options(args, cfg).tilt_filter else ''}", file=err)
     for line in rec.notes + result.notes:
         print(line, file=err)
-    print(f"{len(result)} frames -> {args.csv} ({len(names)} columns)", file=err)
+    print(f"{len(result)} frames -> {' and '.join(outputs)} ({len(names)} columns)", file=err)
     if "truth_vx_m_s" in result.columns:
         e = _rms_vs_truth(result)
         if e is not None:

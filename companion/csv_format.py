@@ -1,0 +1,273 @@
+"""Columns of numbers as CSV text, vectorised, byte for byte what Python's ``%`` formatting gives.
+
+``format_rows(columns, formats)`` returns the bytes of ``",".join(fmt % v ...) + "\\n"`` for
+every row, where each format is ``"%.<P>g"`` (floats), ``"%d"`` (integers) or ``"%s"`` (object
+columns such as names). ``format_rows_reference`` is that rule written out with Python's own
+``%`` operator, one value at a time: it is the definition, and the tests hold the two equal
+(tests/test_csv_format.py, over random values, edge cases and whole replays).
+
+How the floats are done without Python per value. For a finite non-zero ``x`` and ``P``
+significant digits, ``e = floor(log10(|x|))`` and ``m = |x| * 10**(P - 1 - e)`` (one correctly
+rounded multiplication or division by an exactly representable power of ten, so ``m`` is within
+``m * 2**-53`` of the exact product); the digits are ``D = rint(m)``. Python rounds the exact
+binary value half to even; ``rint`` of the rounded product agrees whenever ``m`` is not within
+the rounding error of a half-integer. Every value where that, or the exponent, is in doubt (``m``
+within ``10**P * 1e-15`` of a half, ``D`` outside ``[10**(P-1), 10**P)``, a power of ten beyond
+1e22, subnormals) is formatted by Python itself. Each value's text is then laid out from its
+digits by a per-shape template (sign, exponent, number of significant digits), gathered in one
+``take_along_axis``; rows are joined by dropping the padding of a fixed-width byte matrix.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+from collections.abc import Sequence
+
+import numpy as np
+
+#: rows formatted per block (keeps the byte matrices within the CPU caches)
+BLOCK_ROWS = 16384
+_PAD = 0  # padding byte of the fixed-width matrices (never in the text)
+_FLOAT_FMT = re.compile(r"%\.(\d+)g")
+#: powers of ten exactly representable in float64
+_EXACT_POW10 = 22
+
+
+def format_rows_reference(columns: Sequence[np.ndarray], formats: Sequence[str]) -> bytes:
+    """The CSV rows of ``columns`` (equal lengths) with Python's ``%`` operator, value by value:
+    the rule ``format_rows`` reproduces. UTF-8 text, one ``\\n`` per row."""
+    row = ",".join(formats)
+    values = [np.asarray(c).tolist() for c in columns]
+    return "".join(row % r + "\n" for r in zip(*values, strict=True)).encode()
+
+
+def format_rows(columns: Sequence[np.ndarray], formats: Sequence[str]) -> bytes:
+    """``format_rows_reference(columns, formats)``, vectorised (see the module docstring).
+
+    ``formats``: per column ``"%.<P>g"`` (1 <= P <= 15; the column is read as float64),
+    ``"%d"`` (an integer column) or ``"%s"`` (any column: ``str`` of each value). Other formats
+    or dtypes are handed to the reference."""
+    cols = [np.asarray(c) for c in columns]
+    if not cols:
+        return b""
+    n = len(cols[0])
+    if any(len(c) != n for c in cols):
+        raise ValueError("columns of different lengths")
+    kinds = [_kind(c, f) for c, f in zip(cols, formats, strict=True)]
+    if any(k is None for k in kinds):
+        return format_rows_reference(cols, formats)
+    parts = []
+    for a in range(0, n, BLOCK_ROWS):
+        fields = [_field(c[a:a + BLOCK_ROWS], k) for c, k in zip(cols, kinds, strict=True)]
+        parts.append(_join_rows(fields))
+    return b"".join(parts)
+
+
+def _kind(col: np.ndarray, fmt: str) -> tuple[str, int] | None:
+    if fmt == "%s":
+        return ("s", 0)
+    if fmt == "%d" and col.dtype.kind in "iub" and col.ndim == 1:
+        if col.dtype.kind == "u" and col.dtype.itemsize == 8:
+            return None
+        return ("d", 0)
+    m = _FLOAT_FMT.fullmatch(fmt)
+    if m and 1 <= int(m.group(1)) <= 15 and col.dtype.kind in "fiub" and col.ndim == 1:
+        return ("g", int(m.group(1)))
+    return None
+
+
+def _field(col: np.ndarray, kind: tuple[str, int]) -> np.ndarray:
+    """The text of each value of ``col`` as a (n, W) uint8 matrix padded with ``_PAD``."""
+    if kind[0] == "s":
+        return _strings(col)
+    if kind[0] == "d":
+        return _integers(col)
+    return _floats(col, kind[1])
+
+
+def _strings(col: np.ndarray) -> np.ndarray:
+    """``"%s" % v`` of each value, through the distinct values."""
+    values = col.tolist()
+    uniq: dict[tuple[type, object], int] = {}  # keyed by type too: 1, 1.0 and True print differently
+    try:
+        codes = np.fromiter((uniq.setdefault((type(v), v), len(uniq)) for v in values), dtype=np.int64,
+                            count=len(values))
+    except TypeError:  # unhashable values: one by one
+        return _rows_of([str(v).encode() for v in values]) if values else np.zeros((0, 1), dtype=np.uint8)
+    texts = [str(v).encode() for _, v in uniq]
+    return _rows_of(texts)[codes] if texts else np.zeros((0, 1), dtype=np.uint8)
+
+
+def _rows_of(texts: list[bytes]) -> np.ndarray:
+    """The byte strings as a (k, W) padded matrix."""
+    width = max(1, *(len(t) for t in texts))
+    out = np.zeros((len(texts), width), dtype=np.uint8)
+    for i, t in enumerate(texts):
+        out[i, :len(t)] = np.frombuffer(t, dtype=np.uint8)
+    return out
+
+
+def _python(values: np.ndarray, fmt: str) -> np.ndarray:
+    return _rows_of([(fmt % v).encode() for v in values.tolist()])
+
+
+def _place(out: np.ndarray, idx: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``out`` with ``rows`` (text of the values at ``idx``) written in, widened if needed."""
+    if rows.shape[1] > out.shape[1]:
+        out = np.concatenate((out, np.zeros((len(out), rows.shape[1] - out.shape[1]), np.uint8)), axis=1)
+    out[idx] = _PAD
+    out[idx, :rows.shape[1]] = rows  # one row broadcasts to all of idx
+    return out
+
+
+@functools.cache
+def _chunk_tables() -> tuple[np.ndarray, np.ndarray]:
+    """For 0..99999: the five ASCII digits (as 5-byte items) and the number of trailing zeros
+    of the five-digit string (5 for 0)."""
+    v = np.arange(100_000)
+    chars = np.empty((len(v), 5), dtype=np.uint8)
+    rest = v.copy()
+    for j in range(4, -1, -1):
+        rest, r = np.divmod(rest, 10)
+        chars[:, j] = ord("0") + r
+    tz = np.zeros(len(v), dtype=np.int64)
+    for k in range(1, 6):
+        tz += v % 10**k == 0
+    return chars.view("V5").reshape(-1), tz
+
+
+def _digits(a: np.ndarray, places: int) -> tuple[np.ndarray, np.ndarray]:
+    """The last ``places`` (<= 20) decimal digits of each non-negative int64 in ``a`` as ASCII,
+    most significant first, (n, places) uint8; and the number of trailing zeros among them."""
+    chars5, tz5 = _chunk_tables()
+    k = -(-places // 5)
+    out = np.empty((len(a), 5 * k), dtype=np.uint8)
+    items = out.view("V5")
+    rest = a
+    tz = np.zeros(len(a), dtype=np.int64)
+    running = np.ones(len(a), dtype=bool)  # all chunks so far (from the right) were zero
+    for j in range(k - 1, -1, -1):
+        rest, r = np.divmod(rest, 100_000)
+        items[:, j] = chars5[r]
+        tz += tz5[r] * running
+        running &= r == 0
+    return out[:, 5 * k - places:], np.minimum(tz, places)
+
+
+def _mask(cond: np.ndarray, char: int | np.ndarray) -> np.ndarray:
+    """``char`` where ``cond``, padding elsewhere (padding is 0: a product)."""
+    return np.multiply(cond, char, dtype=np.uint8, casting="unsafe")
+
+
+def _integers(col: np.ndarray) -> np.ndarray:
+    """``"%d" % v`` of each integer: a sign slot, then the digits right-aligned, leading zeros
+    as padding."""
+    v = col.astype(np.int64)
+    extreme = v == np.iinfo(np.int64).min
+    a = np.abs(np.where(extreme, 0, v))
+    places = max(1, len(str(int(a.max())))) if len(a) else 1
+    out = np.empty((len(a), 1 + places), dtype=np.uint8)
+    out[:, 0] = _mask(v < 0, ord("-"))
+    digits, _ = _digits(a, places)
+    ndig = np.ones(len(a), dtype=np.int64)
+    for k in range(1, places):
+        ndig += a >= 10**k
+    out[:, 1:] = _mask(np.arange(places) >= places - ndig[:, None], digits)
+    if extreme.any():
+        idx = np.flatnonzero(extreme)
+        out = _place(out, idx, _python(col[idx], "%d"))
+    return out
+
+
+@functools.cache
+def _pow10(digits: int) -> np.ndarray:
+    """10.0**k for k = -22..22 - as the factor ``_floats`` multiplies (k >= 0) or divides by."""
+    return np.array([10.0 ** abs(k) for k in range(-_EXACT_POW10, _EXACT_POW10 + 1)])
+
+
+def _floats(col: np.ndarray, digits: int) -> np.ndarray:
+    """``"%.<digits>g" % v`` of each value (as float64), in slots: sign (1), ``0.`` and the
+    zeros of a fixed-notation value under 1 (5, when there is one), the digits with a slot for
+    the point (digits + 1), the exponent (5, when there is one); unused slots hold padding."""
+    fmt = f"%.{digits}g"
+    x = col.astype(np.float64)
+    n = len(x)
+    ax = np.abs(x)
+    finite = np.isfinite(x)
+    special = ~finite | (ax == 0)
+    normal = ~special & (ax >= 1e-300) & (ax < 1e300)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        e = np.floor(np.log10(np.where(normal, ax, 1.0))).astype(np.int64)
+        k = digits - 1 - e  # scale by 10**k
+        ok = normal & (np.abs(k) <= _EXACT_POW10)
+        kk = np.where(ok, k, 0)
+        scale = _pow10(digits)[kk + _EXACT_POW10]
+        m = np.where(kk >= 0, ax * scale, ax / scale)
+        d = np.rint(m)
+        frac = m - np.floor(m)
+    lo, hi = 10 ** (digits - 1), 10**digits
+    ok &= (np.abs(frac - 0.5) > hi * 1e-15) & (d >= lo) & (d < hi)
+    dig, tz = _digits(np.where(ok, d, lo).astype(np.int64), digits)
+    ndig = digits - tz  # trailing zeros are dropped (%g)
+    e = np.where(ok, e, 0)
+    fixed = (e >= -4) & (e < digits)
+    under_one = fixed & (e < 0)
+    sci = ~fixed
+    any_under, any_sci = bool(under_one.any()), bool(sci.any())
+    width = 1 + 5 * any_under + digits + 1 + 5 * any_sci
+    out = np.empty((n, width), dtype=np.uint8)
+    out[:, 0] = _mask(x < 0, ord("-"))
+    c = 1
+    if any_under:  # "0." and the zeros after the point of 0.000ddd
+        out[:, 1] = _mask(under_one, ord("0"))
+        out[:, 2] = _mask(under_one, ord("."))
+        for j in range(3):
+            out[:, 3 + j] = _mask(under_one & (j < -e - 1), ord("0"))
+        c = 6
+    # the digits shown (trailing zeros of the fraction are not), then a point slot after the
+    # digit ``at`` (digits: no point) by moving the digits after it one slot on
+    i = np.arange(digits + 1)
+    whole = np.where(fixed & (e >= 0), e + 1, 0)
+    body = _mask(i[None, :digits] < np.maximum(ndig, whole)[:, None], dig)
+    at = np.where(fixed, np.where(e >= 0, e, digits), 0)
+    at = np.where(ndig > at + 1, at, digits)
+    slot = out[:, c:c + digits + 1]
+    slot[:, :digits] = body
+    slot[:, digits] = 0
+    moved = i[None, 1:] > at[:, None] + 1
+    np.copyto(slot[:, 1:], body, where=moved)
+    np.copyto(slot[:, 1:], np.uint8(ord(".")), where=i[None, 1:] == at[:, None] + 1)
+    if any_sci:
+        ae = np.abs(e)
+        tail = out[:, c + digits + 1:]
+        tail[:, 0] = _mask(sci, ord("e"))
+        tail[:, 1] = _mask(sci, np.where(e < 0, ord("-"), ord("+")))
+        tail[:, 2] = _mask(sci & (ae >= 100), ord("0") + ae // 100 % 10)
+        tail[:, 3] = _mask(sci, ord("0") + ae // 10 % 10)
+        tail[:, 4] = _mask(sci, ord("0") + ae % 10)
+    rest = ~ok
+    if special.any():  # zeros, NaN and infinities: as Python spells them
+        zero = ax == 0
+        for mask, text in ((zero & ~np.signbit(x), b"0"), (zero & np.signbit(x), b"-0"), (np.isnan(x), b"nan"),
+                           (x == np.inf, b"inf"), (x == -np.inf, b"-inf")):
+            if mask.any():
+                idx = np.flatnonzero(mask)
+                out = _place(out, idx, np.frombuffer(text, dtype=np.uint8)[None, :])
+                rest[idx] = False
+    if rest.any():
+        idx = np.flatnonzero(rest)
+        out = _place(out, idx, _python(x[idx], fmt))
+    return out
+
+
+def _join_rows(fields: list[np.ndarray]) -> bytes:
+    """The rows of the fields' texts joined by commas, each ended by a newline."""
+    n = len(fields[0])
+    sep = np.full((n, 1), ord(","), dtype=np.uint8)
+    parts: list[np.ndarray] = []
+    for f in fields:
+        parts += [f, sep]
+    parts[-1] = np.full((n, 1), ord("\n"), dtype=np.uint8)
+    mat = np.concatenate(parts, axis=1)
+    return mat[mat != _PAD].tobytes()
