@@ -31,6 +31,7 @@ import os
 import platform
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -43,7 +44,7 @@ for p in (str(ROOT), str(HERE)):
     if p not in sys.path:
         sys.path.insert(0, p)
 
-SECTIONS = ("sim", "latency", "reader", "replay", "diagnose")
+SECTIONS = ("sim", "latency", "reader", "replay", "diagnose", "growth", "history")
 RECORDING_VERSION = 1  # bump when write_flight_tlog changes what it writes
 
 
@@ -149,22 +150,71 @@ def section_latency(t: Table, quick: bool) -> None:
           f"decode {p['parse_us']:.0f} us, step {p['step_us']:.0f} us, encode {p['encode_us']:.0f} us")
 
 
+def _x(v: float | None) -> str:
+    return "-" if v is None else f"{v:,.1f} x" if v < 100 else f"{v:,.0f} x"
+
+
 def section_reader(t: Table, quick: bool, workdir: Path) -> None:
-    try:
-        import bench_reader
-    except ImportError:
-        t.add("reader", "read_tlog vs pymavlink", "not available")
+    """The fair baseline (issue 17): pymavlink's plain loop / pyulog against the reader and the
+    whole replay and info commands, on each recording of ``bench_fair.recordings``."""
+    import bench_fair
+
+    results = []
+    for rec in bench_fair.recordings(workdir, quick):
+        r = bench_fair.measure_recording(rec, workdir / "outputs", repeat=1 if quick else 2)
+        results.append(r)
+        b, rd, q = r["baseline"], r["read"], r["ratios"]
+        base = f"{b['reader']} {b['loop_s']:.2f} s ({b['messages']:,} msgs"
+        base += f", {b['msgs_per_s'] / 1e3:,.1f} k/s)" if b.get("msgs_per_s") else ")"
+        t.add("reader", f"{rec.label}: baseline", base, "1 x", f"+ {b['open_s']:.2f} s to open (not counted)")
+        is_long = "60 min" in rec.label and rec.commands
+        t.add("reader", f"{rec.label}: read in process", f"{rd['warm_s']:.3f} s warm, {rd['cold_s']:.3f} s first",
+              _x(q["read_warm"]), f">= 150 x: {_verdict(q['read_warm'] >= 150)}" if is_long else "")
+        for key, what in (("replay_csv", "replay --csv, whole command"),
+                          ("replay_parquet", "replay --parquet, whole command"), ("info", "info, whole command")):
+            if key in r:
+                c = r[key]
+                target = f">= 50 x: {_verdict((q[key] or 0) >= 50)}" if is_long and key != "replay_parquet" else ""
+                result = f"{c['wall_s']:.2f} s" if c.get("wall_s") else f"failed: {c.get('error')}"
+                t.add("reader", f"{rec.label}: {what}", result, _x(q.get(key)), target)
+    t.numbers["recordings"] = results
+
+
+def section_growth(t: Table, quick: bool, workdir: Path, timeout_s: float) -> None:
+    """Cost against recording length, 1 min to 2 h (``bench_fair.growth``)."""
+    import bench_fair
+    import numpy as np
+
+    minutes = (1.0, 5.0) if quick else bench_fair.GROWTH_MINUTES
+    rows = bench_fair.growth(workdir, minutes, diagnose_timeout_s=timeout_s)
+    t.numbers["growth"] = rows
+    for key in ("baseline", "read", "replay_csv", "info", "diagnose"):
+        pts = [(r["minutes"], r[key]["loop_s"] if key == "baseline" else r[key]["warm_s"] if key == "read"
+                else r[key]["wall_s"]) for r in rows]
+        pts = [(m, v) for m, v in pts if v]
+        if len(pts) < 2:
+            continue
+        k = float(np.polyfit(np.log([m for m, _ in pts]), np.log([v for _, v in pts]), 1)[0])
+        t.numbers[f"growth_exponent_{key}"] = k
+        t.add("growth", f"{key}: {pts[0][0]:g} min -> {pts[-1][0]:g} min", f"{pts[0][1]:.2f} s -> {pts[-1][1]:.2f} s",
+              f"cost ~ length^{k:.2f}")
+
+
+def section_history(t: Table, workdir: Path, quick: bool) -> None:
+    """The earlier baseline (8-12 k msg/s), re-run with its own code on this machine."""
+    import bench_fair
+
+    h = bench_fair.history(workdir, minutes=10.0 if quick else 60.0)
+    t.numbers["history"] = h
+    if "error" in h:
+        t.add("history", f"commit {bench_fair.HISTORY_COMMIT} re-run", "failed", "", h["error"])
         return
-    minutes = 10.0 if quick else 60.0
-    path = workdir / f"synthetic_{minutes:g}min.tlog"
-    if not path.exists():
-        bench_reader.build_recording(path, minutes)
-    m = bench_reader.measure_reader(path)
-    t.numbers["reader"] = m
-    t.add("reader", f"read_tlog, synthetic {minutes:g} min ({m['messages']:,} messages)",
-          f"{m['reader_msgs_per_s']:,.0f} msg/s", f"{m['speedup']:.0f} x pymavlink",
-          f"pymavlink {m['pymavlink_msgs_per_s']:,.0f} msg/s; whole file {m['reader_s']:.2f} s vs "
-          f"~{m['pymavlink_full_s_est']:.0f} s")
+    then = h["then"]
+    for key, what, unit in (("pymavlink_msgs_per_s", "pymavlink probe", "msg/s"),
+                            ("reader_msgs_per_s", "read_tlog", "msg/s"),
+                            ("reference_sim_s_per_s", "RK4 reference (pure Python)", "sim-s/s")):
+        t.add("history", f"commit {h['commit']}'s {what}, today", f"{h[key]:,.1f} {unit}",
+              f"then {then[key]:,.1f} {unit}", f"{h[key] / then[key]:.1f} x faster today")
 
 
 def _flight(workdir: Path, duration_s: float) -> Path:
@@ -262,7 +312,9 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"sections to leave out: {', '.join(SECTIONS)}")
     ap.add_argument("--only", nargs="*", default=None, choices=SECTIONS, metavar="SECTION",
                     help="run only these sections")
-    ap.add_argument("--json", help="also write every number measured here")
+    ap.add_argument("--json", default=str(ROOT / "out" / "bench" / "results.json"),
+                    help="write every number measured here (default out/bench/results.json); "
+                         "benchmarks/render_performance.py turns it into docs/performance.md")
     ap.add_argument("--workdir", default=str(ROOT / "out" / "bench"), help="where the recordings are cached")
     ap.add_argument("--diagnose-timeout", type=float, default=3600.0, help="seconds allowed per diagnose run")
     args = ap.parse_args(argv)
@@ -272,12 +324,24 @@ def main(argv: list[str] | None = None) -> int:
     table = Table()
     load0 = os.getloadavg()[0]
     started = time.perf_counter()
+    started_utc = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    loads: list[tuple[float, float]] = []
+    stop = threading.Event()
+
+    def sample_load() -> None:  # the machine is shared: its load is part of every number
+        while not stop.is_set():
+            loads.append((time.perf_counter() - started, os.getloadavg()[0]))
+            stop.wait(5.0)
+
+    threading.Thread(target=sample_load, daemon=True).start()
     runners: dict[str, Callable[[], None]] = {
         "sim": lambda: section_sim(table, args.quick),
         "latency": lambda: section_latency(table, args.quick),
         "reader": lambda: section_reader(table, args.quick, workdir),
         "replay": lambda: section_replay(table, args.quick, workdir),
         "diagnose": lambda: section_diagnose(table, args.quick, workdir, args.diagnose_timeout),
+        "growth": lambda: section_growth(table, args.quick, workdir, args.diagnose_timeout),
+        "history": lambda: section_history(table, workdir, args.quick),
     }
     for name in todo:
         print(f"[{name}]", file=sys.stderr, flush=True)
@@ -294,12 +358,43 @@ def main(argv: list[str] | None = None) -> int:
               f"{os.getloadavg()[0]:.1f} at end, Python {platform.python_version()}, numpy {numpy.__version__}, "
               f"numba {numba_version}; {time.perf_counter() - started:.0f} s"
               + (" (--quick: not the numbers to quote)" if args.quick else ""))
+    stop.set()
     print(header)
     print(table.render())
     if args.json:
+        table.numbers["machine"] = _machine(started_utc, time.perf_counter() - started, load0, loads, args.quick, todo)
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"header": header, "rows": table.rows, "numbers": table.numbers},
                                               indent=2, default=float))
     return 0
+
+
+def _machine(started_utc: str, wall_s: float, load0: float, loads: list[tuple[float, float]], quick: bool,
+             sections: list[str]) -> dict[str, Any]:
+    """Where and when the run was made: cores, CPU, versions, commit, and the load average
+    sampled every 5 s through the run (the machine is shared)."""
+    import importlib.metadata as md
+
+    def version(name: str) -> str | None:
+        try:
+            return md.version(name)
+        except md.PackageNotFoundError:
+            return None
+
+    cpu = None
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), None)
+    except OSError:
+        pass
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                            text=True).stdout.strip()
+    values = [v for _, v in loads] or [load0]
+    return {"started_utc": started_utc, "wall_s": wall_s, "cores": os.cpu_count(), "cpu": cpu,
+            "python": platform.python_version(), "commit": commit, "quick": quick, "sections": sections,
+            "versions": {n: version(n) for n in ("numpy", "numba", "pymavlink", "fastcrc", "pyulog", "pyarrow")},
+            "load_start": load0, "load_end": os.getloadavg()[0], "load_min": min(values), "load_max": max(values),
+            "load_mean": sum(values) / len(values), "load_samples": loads}
 
 
 if __name__ == "__main__":

@@ -1,0 +1,368 @@
+"""Benchmark: the project's readers and commands against a plain pymavlink / pyulog read, on the
+same files, in the same run (issue 17).
+
+    .venv/bin/python benchmarks/bench_fair.py [--workdir out/bench] [--json OUT] [--quick]
+
+The baseline is what a user would write: ``mavutil.mavlink_connection(path, dialect="ardupilotmega")``
+and a ``recv_match()`` loop to the end (a .tlog: pymavlink's ``mavmmaplog``; a DataFlash .BIN:
+``DFReader_binary``), and for a ULog ``pyulog.ULog(path)``. Each baseline runs in a fresh
+interpreter; its loop time (``loop_s``, opening excluded: the stricter ratio) and its opening
+(``open_s``: mavmmaplog indexes the file first) are kept apart.
+
+Against it, each in a fresh interpreter too:
+
+- ``read``: ``companion.recording.load_recording`` (``read_tlog`` for a .tlog), the first read
+  (``cold_s``) and the best of three more (``warm_s``), with the imports timed apart;
+- ``replay``: the whole command ``python -m companion replay REC --csv OUT`` (start-up, reading,
+  the steps, the CSV) and with ``--parquet OUT`` instead, best of ``repeat`` wall times;
+- ``info``: the whole command ``python -m companion info REC``;
+- ``diagnose``: the whole command ``python -m companion diagnose REC --json OUT`` (growth only).
+
+``recordings(workdir)`` lists the files (the SITL flights from data/, generated closed-loop
+flights written by ``bench_sim.write_flight_tlog``, the synthetic recording of
+``bench_reader.build_recording``, the SITL DataFlash log, a long ULog built by the importer test
+fixtures' writer); ``measure_recording`` measures one; ``growth`` times read, replay, info and
+diagnose over generated flights from 1 minute to 2 hours; ``history`` re-runs the code and probe of
+the README's earlier benchmark (commit ``HISTORY_COMMIT``) on today's machine, to tell a change of
+method from a change of machine. Each result carries the load average before and after it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import gzip
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+HERE = Path(__file__).resolve().parent
+for _p in (str(ROOT), str(HERE)):
+    if _p not in sys.path:
+        sys.path.insert(0, _p)
+
+SITL_DIR = ROOT / "data" / "sitl" / "ardupilot"
+FIXTURES = ROOT / "tests" / "data" / "importers"
+#: the commit whose README table quoted pymavlink at 11.9 k msg/s (benchmarks/run.py, idle machine)
+HISTORY_COMMIT = "aaaf2e6"
+#: lengths (min) of the cost-growth curve
+GROWTH_MINUTES = (1.0, 5.0, 15.0, 30.0, 60.0, 120.0)
+FLIGHT_VERSION = 1  # as run.py's RECORDING_VERSION: the cached flights' names carry it
+
+
+@dataclasses.dataclass(frozen=True)
+class Recording:
+    """One benchmark file: ``kind`` "tlog", "dataflash" or "ulog"; ``commands``: whether the
+    whole replay/info commands are timed on it."""
+
+    label: str
+    path: Path
+    kind: str
+    commands: bool = True
+
+
+def load_avg() -> float:
+    return os.getloadavg()[0]
+
+
+def _run_json(code: str, *args: str, timeout_s: float = 3600.0) -> dict[str, Any]:
+    out = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=ROOT,
+                         timeout=timeout_s)
+    if out.returncode != 0:
+        raise RuntimeError((out.stderr.strip().splitlines() or ["?"])[-1][:200])
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+# ---------------------------------------------------------------------------------------------
+# The baselines
+
+_PYMAVLINK = """
+import json, sys, time
+t0 = time.perf_counter()
+from pymavlink import mavutil
+t1 = time.perf_counter()
+conn = mavutil.mavlink_connection(sys.argv[1], dialect="ardupilotmega")
+t2 = time.perf_counter()
+n = 0
+while True:
+    m = conn.recv_match()
+    if m is None:
+        break
+    n += 1
+t3 = time.perf_counter()
+print(json.dumps({"import_s": t1 - t0, "open_s": t2 - t1, "loop_s": t3 - t2, "messages": n,
+                  "reader": type(conn).__name__}))
+"""
+
+_PYULOG = """
+import json, sys, time
+t0 = time.perf_counter()
+from pyulog import ULog
+t1 = time.perf_counter()
+u = ULog(sys.argv[1])
+t2 = time.perf_counter()
+n = sum(len(d.data["timestamp"]) for d in u.data_list)
+print(json.dumps({"import_s": t1 - t0, "open_s": 0.0, "loop_s": t2 - t1, "messages": n, "reader": "pyulog.ULog"}))
+"""
+
+
+def baseline(rec: Recording) -> dict[str, Any]:
+    """The plain third-party read of ``rec``: pymavlink's loop (tlog, DataFlash) or pyulog."""
+    la = load_avg()
+    r = _run_json(_PYULOG if rec.kind == "ulog" else _PYMAVLINK, str(rec.path))
+    r["total_s"] = r["open_s"] + r["loop_s"]
+    r["msgs_per_s"] = r["messages"] / r["loop_s"] if r["loop_s"] > 0 else None
+    r["load_before"], r["load_after"] = la, load_avg()
+    return r
+
+
+# ---------------------------------------------------------------------------------------------
+# Ours
+
+_READ = """
+import json, sys, time
+t0 = time.perf_counter()
+from companion.recording import load_recording
+import companion.tlog_reader
+t1 = time.perf_counter()
+runs = []
+for _ in range(int(sys.argv[2])):
+    t = time.perf_counter()
+    rec = load_recording(sys.argv[1])
+    runs.append(time.perf_counter() - t)
+    n, skipped = rec.n_messages, rec.skipped_bytes
+    del rec
+print(json.dumps({"import_s": t1 - t0, "cold_s": runs[0], "warm_s": min(runs[1:] or runs), "messages": n,
+                  "skipped_bytes": skipped}))
+"""
+
+
+def read(rec: Recording, repeat: int = 4) -> dict[str, Any]:
+    """``load_recording`` in a fresh interpreter: the first read and the best of the others."""
+    la = load_avg()
+    r = _run_json(_READ, str(rec.path), str(repeat))
+    r["load_before"], r["load_after"] = la, load_avg()
+    return r
+
+
+def command(args: list[str], repeat: int = 2, timeout_s: float = 3600.0) -> dict[str, Any]:
+    """Wall time of ``python -m companion ARGS`` as a user runs it (best of ``repeat``), and
+    its exit code (a failure is kept with its last line of stderr)."""
+    la = load_avg()
+    walls = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = subprocess.run([sys.executable, "-m", "companion", *args], capture_output=True, text=True, cwd=ROOT,
+                             timeout=timeout_s)
+        walls.append(time.perf_counter() - t)
+        if out.returncode != 0:
+            return {"wall_s": None, "exit_code": out.returncode,
+                    "error": (out.stderr.strip().splitlines() or ["?"])[-1][:200], "load_before": la,
+                    "load_after": load_avg()}
+    return {"wall_s": min(walls), "walls_s": walls, "exit_code": 0, "load_before": la, "load_after": load_avg()}
+
+
+def measure_recording(rec: Recording, out_dir: Path, repeat: int = 2) -> dict[str, Any]:
+    """Baseline, read, and (``rec.commands``) the whole replay (CSV, Parquet) and info commands."""
+    res: dict[str, Any] = {"label": rec.label, "file": rec.path.name, "kind": rec.kind,
+                           "bytes": rec.path.stat().st_size}
+    res["baseline"] = baseline(rec)
+    res["read"] = read(rec)
+    if rec.commands:
+        csv = out_dir / f"{rec.path.stem}.csv"
+        res["replay_csv"] = command(["replay", str(rec.path), "--csv", str(csv)], repeat)
+        res["replay_csv"]["csv_bytes"] = csv.stat().st_size if csv.exists() else None
+        parquet = out_dir / f"{rec.path.stem}.parquet"
+        res["replay_parquet"] = command(["replay", str(rec.path), "--parquet", str(parquet)], repeat)
+        res["info"] = command(["info", str(rec.path)], repeat)
+    base = res["baseline"]["loop_s"]
+    res["ratios"] = {k: (base / v["wall_s"] if v.get("wall_s") else None)
+                     for k, v in res.items() if isinstance(v, dict) and "wall_s" in v}
+    res["ratios"]["read_warm"] = base / res["read"]["warm_s"]
+    res["ratios"]["read_cold"] = base / res["read"]["cold_s"]
+    return res
+
+
+# ---------------------------------------------------------------------------------------------
+# The files
+
+
+def _gunzip(src: Path, dst: Path) -> Path:
+    if not dst.exists():
+        tmp = dst.with_suffix(dst.suffix + ".partial")
+        tmp.write_bytes(gzip.decompress(src.read_bytes()))
+        tmp.rename(dst)
+    return dst
+
+
+def flight(workdir: Path, duration_s: float) -> Path:
+    """The generated closed-loop flight of ``duration_s`` (``bench_sim.write_flight_tlog``,
+    seed 3; cached under the name run.py uses)."""
+    import bench_sim
+
+    path = workdir / f"flight_{duration_s:g}s_v{FLIGHT_VERSION}.tlog"
+    if not path.exists():
+        tmp = path.with_suffix(".partial")
+        bench_sim.write_flight_tlog(tmp, duration_s, seed=3)
+        tmp.rename(path)
+    return path
+
+
+def long_ulog(workdir: Path, minutes: float) -> Path:
+    """A PX4-like ULog of ``minutes`` (the importer fixtures' writer, tests/data/importers,
+    with its planted motion held to the end)."""
+    path = workdir / f"px4_flow_{minutes:g}min.ulg"
+    if path.exists():
+        return path
+    sys.path.insert(0, str(FIXTURES))
+    import make_fixtures as mf
+
+    t = mf.ULOG_TRUTH
+    n = int(minutes * 60 * 1e6 / t.frame_us)
+    end = t.t0_us + (n + 50) * t.frame_us
+    segs = tuple(dataclasses.replace(s, t_end_us=end) if i == len(t.segments) - 1 else s
+                 for i, s in enumerate(t.segments))
+    tmp = path.with_suffix(".partial")
+    tmp.write_bytes(mf.ulog_bytes(dataclasses.replace(t, n_frames=n, segments=segs)))
+    tmp.rename(path)
+    return path
+
+
+def recordings(workdir: Path, quick: bool = False) -> list[Recording]:
+    """The benchmark's files (decompressed or generated into ``workdir`` once)."""
+    import bench_reader
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    def sitl(name: str) -> Path:
+        return _gunzip(SITL_DIR / f"{name}.gz", workdir / name)
+
+    recs = [Recording("ArduCopter SITL flight_a (2.9 min)", sitl("flight_a.tlog"), "tlog"),
+            Recording("ArduCopter SITL flight_c0, companion link", sitl("flight_c0_companion.tlog"), "tlog")]
+    minutes = 10.0 if quick else 60.0
+    recs.append(Recording(f"generated closed-loop flight, {minutes:g} min", flight(workdir, minutes * 60), "tlog"))
+    syn = workdir / f"synthetic_{minutes:g}min.tlog"
+    if not syn.exists():
+        bench_reader.build_recording(syn, minutes)
+    recs.append(Recording(f"synthetic streams, {minutes:g} min (the earlier reader benchmark's)", syn, "tlog",
+                          commands=False))
+    recs.append(Recording("ArduCopter SITL flight_c0 DataFlash .BIN", sitl("flight_c0.BIN"), "dataflash"))
+    recs.append(Recording(f"PX4-like ULog, {2 if quick else 10} min", long_ulog(workdir, 2 if quick else 10), "ulog"))
+    return recs
+
+
+# ---------------------------------------------------------------------------------------------
+# Cost growth
+
+
+def growth(workdir: Path, minutes: tuple[float, ...] = GROWTH_MINUTES, diagnose_timeout_s: float = 1800.0
+           ) -> list[dict[str, Any]]:
+    """Time against recording length: pymavlink's loop, read (in process), and the whole replay,
+    info and diagnose commands, on generated closed-loop flights."""
+    out = []
+    for m in minutes:
+        path = flight(workdir, m * 60)
+        rec = Recording(f"{m:g} min", path, "tlog")
+        row: dict[str, Any] = {"minutes": m, "bytes": path.stat().st_size}
+        row["baseline"] = baseline(rec)
+        row["read"] = read(rec, repeat=3)
+        row["replay_csv"] = command(["replay", str(path), "--csv", str(workdir / "growth.csv")], repeat=1)
+        row["info"] = command(["info", str(path)], repeat=1)
+        row["diagnose"] = command(["diagnose", str(path), "--json", str(workdir / "growth_diagnose.json")], repeat=1,
+                                  timeout_s=diagnose_timeout_s)
+        print(f"  growth {m:g} min: pymavlink {row['baseline']['loop_s']:.1f} s, read {row['read']['warm_s']:.2f} s, "
+              f"replay {row['replay_csv']['wall_s']}, info {row['info']['wall_s']}, "
+              f"diagnose {row['diagnose']['wall_s']}", file=sys.stderr, flush=True)
+        out.append(row)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The earlier baseline, re-run
+
+
+def _quoted_then() -> dict[str, Any]:
+    """What the README of ``HISTORY_COMMIT`` printed (its benchmark table, read from git):
+    the reader's and pymavlink's msg/s on the synthetic 60 min, and the RK4 reference's speed."""
+    import re
+
+    text = subprocess.run(["git", "show", f"{HISTORY_COMMIT}:README.md"], cwd=ROOT, capture_output=True, text=True,
+                          check=True).stdout
+    num = r"([\d,]+(?:\.\d+)?)"
+    reader = re.search(r"^reader .*?" + num + r" msg/s .*?pymavlink " + num + " msg/s", text, re.M)
+    ref = re.search(r"^simulator +reference: RK4.*? " + num + " sim-s/s", text, re.M)
+    load = re.search(r"load average ([\d.]+) at start and ([\d.]+) at end", text)
+    if not (reader and ref):
+        return {}
+
+    def f(m: re.Match[str], i: int) -> float:
+        return float(m.group(i).replace(",", ""))
+
+    return {"reader_msgs_per_s": f(reader, 1), "pymavlink_msgs_per_s": f(reader, 2),
+            "speedup": f(reader, 1) / f(reader, 2), "reference_sim_s_per_s": f(ref, 1),
+            "load": [float(load.group(1)), float(load.group(2))] if load else None}
+
+
+def history(workdir: Path, minutes: float = 60.0) -> dict[str, Any]:
+    """The README's earlier reader benchmark (commit ``HISTORY_COMMIT``: its reader, its pymavlink
+    probe, its synthetic recording, its RK4 reference) run again here, beside today's numbers it
+    quoted. Tells a change of method from a change of machine."""
+    import bench_reader
+
+    syn = workdir / f"synthetic_{minutes:g}min.tlog"
+    if not syn.exists():
+        bench_reader.build_recording(syn, minutes)
+    tmp = Path(tempfile.mkdtemp(prefix="flowhold-history-"))
+    try:
+        arch = tmp / "old.tar"
+        with open(arch, "wb") as fh:
+            subprocess.run(["git", "archive", HISTORY_COMMIT, "companion", "benchmarks", "simvehicle", "configs"],
+                           cwd=ROOT, stdout=fh, check=True)
+        with tarfile.open(arch) as tf:
+            tf.extractall(tmp / "old", filter="data")
+        code = ("import json, sys; sys.path[:0] = ['benchmarks', '.']\n"
+                "import bench_reader, bench_sim\n"
+                "m = bench_reader.measure_reader(sys.argv[1], pymavlink_sample=0)\n"
+                "r = bench_sim.measure_reference(10.0)\n"
+                "print(json.dumps({'reader_msgs_per_s': m['reader_msgs_per_s'], "
+                "'pymavlink_msgs_per_s': m['pymavlink_msgs_per_s'], 'speedup': m['speedup'], "
+                "'messages': m['messages'], 'reference_sim_s_per_s': r['speed']}))\n")
+        la = load_avg()
+        out = subprocess.run([sys.executable, "-c", code, str(syn)], capture_output=True, text=True, cwd=tmp / "old",
+                             timeout=1800)
+        if out.returncode != 0:
+            return {"error": (out.stderr.strip().splitlines() or ["?"])[-1][:200]}
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        r.update({"commit": HISTORY_COMMIT, "minutes": minutes, "load_before": la, "load_after": load_avg(),
+                  "then": _quoted_then()})
+        return r
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--workdir", default=str(ROOT / "out" / "bench"))
+    ap.add_argument("--json", help="write every number here")
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args(argv)
+    workdir = Path(args.workdir)
+    out_dir = workdir / "outputs"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results = [measure_recording(r, out_dir) for r in recordings(workdir, args.quick)]
+    for r in results:
+        print(r["label"], {k: round(v, 1) for k, v in r["ratios"].items() if v})
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
