@@ -1,0 +1,46 @@
+"""Start-up stays lean: ``replay`` and ``info`` load no numba, scipy, matplotlib or pyarrow
+unless asked for what needs them (issue 17: on an hour-long recording the whole command is
+measured against pymavlink's read, and numba alone costs about 0.35 s to import and load)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+HEAVY = ("numba", "llvmlite", "scipy", "matplotlib", "pyarrow", "pandas", "dask")
+
+PROBE = """
+import contextlib, io, json, sys
+from companion.cli import main
+with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+    code = main(sys.argv[1:])
+heavy = sorted({m.split(".")[0] for m in sys.modules} & set(HEAVY))
+print(json.dumps({"code": code, "heavy": heavy}))
+""".replace("HEAVY", repr(HEAVY))
+
+
+def _loaded(*args: str) -> dict:
+    out = subprocess.run([sys.executable, "-c", PROBE, *args], capture_output=True, text=True, cwd=ROOT, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("command", ["replay-csv", "info"])
+def test_replay_and_info_load_nothing_heavy(command, flight_a_plain, tmp_path):
+    args = (["replay", str(flight_a_plain), "--csv", str(tmp_path / "r.csv")] if command == "replay-csv"
+            else ["info", str(flight_a_plain)])
+    r = _loaded(*args)
+    assert r["code"] == 0
+    assert r["heavy"] == []
+
+
+def test_parquet_loads_pyarrow_only_when_asked(flight_a_plain, tmp_path):
+    pytest.importorskip("pyarrow")
+    r = _loaded("replay", str(flight_a_plain), "--parquet", str(tmp_path / "r.parquet"))
+    assert r["code"] == 0
+    assert "pyarrow" in r["heavy"]
+    assert not {"numba", "scipy", "matplotlib"} & set(r["heavy"])
