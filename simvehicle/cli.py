@@ -52,10 +52,15 @@ def build_parser() -> argparse.ArgumentParser:
                     help="fly a paper scenario's schedule: its external force, and its velocity setpoints "
                          "sent to the companion as a ground station would; --duration defaults to its length")
 
-    sw = sub.add_parser("sweep", help="figures of merit across a parameter grid (all cores)")
+    sw = sub.add_parser("sweep", help="figures of merit across a parameter grid (on Dask: all cores or a cluster)")
     sw.add_argument("sweep_config", help="sweep definition (TOML), e.g. configs/sweeps/altitude_q.toml")
     sw.add_argument("--out", default="out/sweep", help="folder for the table (CSV) and the plot (default out/sweep)")
-    sw.add_argument("--workers", type=int, help="processes (default: all cores)")
+    sw.add_argument("--workers", type=int, help="worker processes of the Dask LocalCluster (default: all cores)")
+    sw.add_argument("--scheduler", help="address of a running Dask scheduler, e.g. tcp://host:8786 "
+                                        "(default: a LocalCluster on this machine)")
+    sw.add_argument("--in-process", action="store_true",
+                    help="no Dask: one batch after another in this process (the mode without the cluster extra)")
+    sw.add_argument("--batch", type=int, help="flights per task (default: about four tasks per worker, at most 256)")
     return parser
 
 

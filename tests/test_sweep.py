@@ -77,7 +77,7 @@ def test_sweep_rows_are_the_scenario_figures(tmp_path, paper_cfg):
     """Each row holds ``scenarios.figures`` of its config's flight (fast engine, MAVLink
     quantization: the numbers ``python -m simvehicle scenario`` prints), in grid order."""
     spec = sweep.load_sweep(_small(tmp_path))
-    rows = sweep.run_sweep(spec, workers=1, progress=False)
+    rows = sweep.run_sweep(spec)
     assert [(r["world.altitude_m"], r["flow_sensor.q_rad_per_count"]) for r in rows] == \
         [(0.5, Q_TABLE_VI), (0.5, 0.003), (1.0, Q_TABLE_VI), (1.0, 0.003)]
     for r, (_, cfg) in zip(rows, sweep.grid_configs(spec), strict=True):
@@ -104,29 +104,127 @@ def test_effect_axis_and_seeds(tmp_path):
     spec = sweep.load_sweep(_write(tmp_path, f'base_config = "{base.name}"\nscenarios = ["step"]\n'
                                              f'seeds = [1, 2, 3]\n[grid]\n"effects.linear_drag.b" = [0.0, 0.5]\n'))
     assert sweep.grid_configs(spec)[1][1].effects.linear_drag == C.LinearDrag(0.5)
-    rows = sweep.run_sweep(spec, workers=1, progress=False)
+    rows = sweep.run_sweep(spec)
     assert [(r["effects.linear_drag.b"], r["seed"]) for r in rows] == [(b, s) for b in (0.0, 0.5) for s in (1, 2, 3)]
     finals = np.array([r["step_final_velocity_m_s_x"] for r in rows])
     assert len(set(finals.tolist())) == 6  # the noise differs by seed
     assert np.all(np.abs(finals - 2.0) < 0.05)  # and the PI holds 2 m/s with or without drag
 
 
-def test_sweep_command_line_with_workers(tmp_path):
-    """``python -m simvehicle sweep``: two processes, a CSV equal to the in-process sweep, a plot."""
-    path = _small(tmp_path)
-    out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "simvehicle", "sweep", str(path), "--out", str(out), "--workers", "2"],
-                       capture_output=True, text=True, timeout=300, cwd=REPO)
-    assert r.returncode == 0, r.stderr
-    assert "4 rows" in r.stdout and "8 flights" in r.stdout
-    assert "sweep" in r.stderr  # the progress bar
+def _same_table(out: Path, path: Path) -> None:
     table = _read(out / "sweep.csv")
-    here = sweep.run_sweep(sweep.load_sweep(path), workers=1, progress=False)
-    assert len(table) == 4
+    here = sweep.run_sweep(sweep.load_sweep(path))
+    assert len(table) == len(here)
     for got, want in zip(table, here, strict=True):
         for k, v in want.items():
             assert float(got[k]) == pytest.approx(v, rel=1e-15, abs=0) or (math.isnan(v) and got[k] == "nan")
+
+
+def test_sweep_command_line_with_workers(tmp_path):
+    """``python -m simvehicle sweep --workers 2``: a Dask LocalCluster of two workers, batches of
+    two flights per task, a CSV equal to the in-process sweep, a plot; no progress bar in a pipe."""
+    pytest.importorskip("distributed")
+    path = _small(tmp_path)
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "simvehicle", "sweep", str(path), "--out", str(out), "--workers", "2",
+                        "--batch", "2"], capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    assert "4 rows" in r.stdout and "8 flights" in r.stdout and "Dask LocalCluster of 2 worker(s)" in r.stdout
+    assert "dashboard: http://" in r.stdout
+    assert r.stderr == ""  # the progress bar is for terminals only
+    _same_table(out, path)
     assert (out / "sweep.png").stat().st_size > 20_000
+
+
+def test_sweep_on_a_running_scheduler(tmp_path):
+    """``--scheduler ADDRESS``: the cluster's own workers fly the batches; the same table."""
+    pytest.importorskip("distributed")
+    from distributed import LocalCluster
+
+    path = _small(tmp_path)
+    out = tmp_path / "out"
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+        r = subprocess.run([sys.executable, "-m", "simvehicle", "sweep", str(path), "--out", str(out), "--scheduler",
+                            cluster.scheduler_address], capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    assert f"Dask cluster at {cluster.scheduler_address} (1 worker thread(s))" in r.stdout
+    _same_table(out, path)
+
+
+def test_progress_bar_on_a_terminal_only(tmp_path):
+    """stderr a terminal (a pseudo-terminal of 100 columns here): tqdm's bar counts the flights."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import termios
+
+    path = _small(tmp_path)
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))
+    proc = subprocess.Popen([sys.executable, "-m", "simvehicle", "sweep", str(path), "--out", str(tmp_path / "o"),
+                             "--in-process"], stdout=subprocess.PIPE, stderr=slave, cwd=REPO)
+    os.close(slave)
+    seen = b""
+    try:
+        while True:
+            try:
+                chunk = os.read(master, 65536)
+            except OSError:  # EIO: the child closed the terminal
+                break
+            if not chunk:
+                break
+            seen += chunk
+    finally:
+        os.close(master)
+        proc.communicate(timeout=300)
+    assert proc.returncode == 0
+    text = seen.decode(errors="replace")
+    assert "sweep:" in text and "/8 [" in text and "flight/s" in text  # 8 flights (2 x 2 grid, 2 scenarios)
+
+
+def test_colour_limits_keep_small_spreads_small():
+    """A 0.54-0.56 s spread of rise times spans 0.02 of a colour range at least 0.5 s wide (the
+    paper's own rise time): it stays one colour. A spread wider than the floor keeps its range;
+    held frames run from 0 to the flight's 750 frames (15 s at 50 Hz)."""
+    lo, hi = sweep.colour_limits(np.array([[0.54, 0.56], [0.55, np.nan]]), 0.5)
+    assert (lo, hi) == pytest.approx((0.3, 0.8))
+    assert (0.56 - 0.54) / (hi - lo) == pytest.approx(0.04)
+    assert sweep.colour_limits(np.array([0.0, 2.0]), 0.5) == (0.0, 2.0)
+    assert sweep.colour_limits(np.array([0.0, 459.0]), 750.0, from_zero=True) == (0.0, 750.0)
+    spec = sweep.load_sweep(REPO / "configs" / "sweeps" / "altitude_q.toml")
+    assert sweep._colour_span("step_held_frames", spec) == (15.0 * 50.0, True)
+    assert sweep._colour_span("step_rise_time_10_90_s_x", spec) == (0.5, False)
+
+
+def test_anomalous_cells_are_where_the_scene_rate_passes_the_spike_gate(tmp_path):
+    """The companion holds a frame whose scene rate is over ``max_flow_rate_rad_s`` (7.4 rad/s):
+    the step's 2 m/s is 2 / h rad/s, over the gate below h = 2 / 7.4 = 0.27 m. So at 0.25 m (8
+    rad/s) the step holds frames and cannot settle at 2 m/s; at 0.5 m (4 rad/s) nothing is
+    anomalous. With the gate at 9 rad/s (2.25 m/s at 0.25 m) the 2 m/s is seen, but the step's
+    overshoot (about 21 %: 2.4 m/s, 9.7 rad/s) passes the gate and is held there; at 12 rad/s
+    (3 m/s) nothing is held."""
+    path = _write(tmp_path, f'base_config = "{PAPER}"\nscenarios = ["step"]\n[grid]\n'
+                            '"world.altitude_m" = [0.25, 0.5]\n"companion.max_flow_rate_rad_s" = [7.4, 9.0, 12.0]\n')
+    spec = sweep.load_sweep(path)
+    rows = sweep.run_sweep(spec)
+    marks = sweep.anomalies(rows, spec)
+    cells = {(a.cell, a.code) for a in marks}
+    assert ((0, 0), "H") in cells and ((0, 0), "S") in cells
+    assert not any(a.cell[0] == 1 for a in marks)  # 0.5 m: nothing
+    assert not any(a.cell == (0, 2) for a in marks)  # the 12 rad/s gate: nothing
+    over = next(a for a in marks if a.cell == (0, 1) and a.code == "H")
+    assert "overshoot" in over.cause and "9 rad/s" in over.cause
+    held = next(a for a in marks if a.cell == (0, 0) and a.code == "H")
+    assert held.value == rows[0]["step_held_frames"] > 0
+    assert "8.0 rad/s" in held.cause and "7.4 rad/s" in held.cause
+    settled = next(a for a in marks if a.cell == (0, 0) and a.code == "S")
+    assert settled.value == rows[0]["step_final_velocity_m_s_x"] and abs(settled.value - 2.0) > 0.1
+    assert f"{7.4 * 0.25:.2f} m/s" in settled.cause  # the fastest speed it can see
+    lines = sweep.describe(marks, spec)
+    assert any(line.startswith("H at altitude_m = 0.25, max_flow_rate_rad_s = 7.4 (1 cell(s))") for line in lines)
+    sweep.plot_sweep(rows, spec, tmp_path / "p.png", marks)
+    assert (tmp_path / "p.png").stat().st_size > 20_000
 
 
 def test_sweep_command_line_bad_file_is_one_line(tmp_path):
