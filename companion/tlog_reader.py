@@ -674,6 +674,59 @@ def _unknown_fields(buf: np.ndarray, s: np.ndarray, end: np.ndarray) -> dict[str
 # The reader
 
 
+#: files at least this large are mapped into memory rather than copied (``_map_file``)
+MAP_MIN_BYTES = 1 << 20
+
+
+class _Mapping:
+    """A read-only private mapping of a file followed by zero pages (Linux, through libc's
+    ``mmap``): ``length`` bytes at ``address``, unmapped when this object is collected."""
+
+    def __init__(self, address: int, length: int, munmap: Any) -> None:
+        self.address, self.length, self._munmap = address, length, munmap
+        self.__array_interface__ = {"shape": (length,), "typestr": "|u1", "data": (address, True), "version": 3}
+
+    def __del__(self) -> None:
+        self._munmap(self.address, self.length)
+
+
+def _map_file(path: Path, n_bytes: int) -> np.ndarray | None:
+    """The file's bytes followed by at least ``_PAD`` zero bytes, as a read-only uint8 array
+    mapped from the page cache (no copy, and no page faults one 4 KiB page at a time: an hour-long
+    recording's 86 MB cost 0.1-0.2 s to copy in a fresh process). An anonymous zero mapping of
+    the whole length is made first and the file mapped over its start (MAP_FIXED); the kernel
+    zero-fills the file's last page past its end. None where this is not available (not Linux,
+    no libc): the caller copies the file instead."""
+    import ctypes
+    import ctypes.util
+    import mmap
+
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.mmap.restype = ctypes.c_void_p
+        libc.mmap.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int, ctypes.c_int,
+                              ctypes.c_long)
+        libc.munmap.argtypes = (ctypes.c_void_p, ctypes.c_size_t)
+        page = mmap.PAGESIZE
+        length = -(-(n_bytes + _PAD) // page) * page
+        failed = ctypes.c_void_p(-1).value
+        anon = getattr(mmap, "MAP_ANONYMOUS", 0x20)
+        base = libc.mmap(None, length, mmap.PROT_READ, mmap.MAP_PRIVATE | anon, -1, 0)
+        if base in (None, failed):
+            return None
+        with open(path, "rb") as f:
+            at = libc.mmap(base, n_bytes, mmap.PROT_READ,
+                           mmap.MAP_PRIVATE | 0x10 | getattr(mmap, "MAP_POPULATE", 0), f.fileno(), 0)  # 0x10: MAP_FIXED
+        if at != base:
+            libc.munmap(base, length)
+            return None
+    except (OSError, AttributeError, TypeError, ValueError):
+        return None
+    return np.asarray(_Mapping(base, length, libc.munmap))
+
+
 def _load(path: Path) -> tuple[np.ndarray, int]:
     """The file's bytes in a zero-padded uint8 array, and the file length (a ``.gz`` file:
     decompressed in memory, and the decompressed length)."""
@@ -685,6 +738,10 @@ def _load(path: Path) -> tuple[np.ndarray, int]:
         buf[n_bytes:] = 0
         return buf, n_bytes
     n_bytes = path.stat().st_size
+    if n_bytes >= MAP_MIN_BYTES:
+        mapped = _map_file(path, n_bytes)
+        if mapped is not None:
+            return mapped, n_bytes
     buf = np.empty(n_bytes + _PAD, dtype=np.uint8)
     buf[n_bytes:] = 0
     with open(path, "rb") as f:
