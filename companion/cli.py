@@ -98,7 +98,7 @@ def _dispatch(command: str) -> Callable[[argparse.Namespace], int]:
     elif command == "info":
         from companion.info import run_cli
     elif command == "fleet":
-        from companion.fleet import run_cli
+        from companion.fleet.run import run_cli
     else:
         from companion.diagnose import run_cli
     return run_cli

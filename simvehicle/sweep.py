@@ -1,6 +1,14 @@
-"""Parameter sweeps: the paper's figures of merit across a grid of parameters, on all cores.
+"""Parameter sweeps: the paper's figures of merit across a grid of parameters, on Dask.
 
-    python -m simvehicle sweep configs/sweeps/altitude_q.toml --out out/sweep [--workers N]
+    python -m simvehicle sweep configs/sweeps/altitude_q.toml --out out/sweep
+                               [--workers N | --scheduler tcp://host:8786 | --in-process] [--batch N]
+
+The flights go in batches (``--batch`` flights of one scenario per task; by default about four
+tasks per worker, at most ``MAX_BATCH`` flights) to a Dask ``LocalCluster`` of ``--workers``
+processes (default: all cores), to the cluster at ``--scheduler``, or through this process
+(``--in-process``, and the mode when Dask is not installed: ``pip install 'flowhold[cluster]'``);
+the table is the same in every mode (``companion.fleet.engine``). A progress bar counts the
+flights on a terminal.
 
 A sweep file is TOML; every key is checked and an unknown one is an error::
 
@@ -21,7 +29,11 @@ quantization, so a row's numbers are those ``python -m simvehicle scenario`` rep
 config. Output: ``DIR/sweep.csv``, one row per grid point and seed (the grid values, the seed,
 then ``<scenario>_<figure>_<axis>`` for every figure of merit of ``scenarios.figures`` and the
 number of frames the companion held), and ``DIR/sweep.png``, a heatmap per headline figure over
-the first two axes (mean over seeds and any further axes).
+the first two axes (mean over seeds and any further axes). Each cell has its number written in
+it; the colour range is at least ``COLOUR_SPAN`` wide (a spread of rise times from 0.54 to
+0.56 s is one colour, not the whole colour map); cells whose figures mean less than they seem
+(frames held by the companion's gates, a step that did not settle, a gust not held) are framed in
+red with a letter, explained under the plot and in the command's summary (``anomalies``).
 """
 
 from __future__ import annotations

@@ -25,7 +25,7 @@ import pytest
 
 from companion.errors import UsageError
 from companion.fleet import engine as eng
-from companion.fleet import find_recordings, run_fleet
+from companion.fleet.run import find_recordings, run_fleet
 from companion.fleet.table import OUTLIER_SIGMA, flag_outliers, read_parquet
 from simvehicle import flightgen as fg
 
@@ -285,3 +285,19 @@ def test_the_command_line_in_process(fleet, tmp_path) -> None:
         in r.stdout
     assert r.stderr == ""  # no progress bar when stderr is not a terminal
     assert (tmp_path / "o" / "summary.html").is_file() and (tmp_path / "o" / "fleet.parquet").is_file()
+
+
+def test_the_fleet_on_a_running_scheduler(fleet, tmp_path) -> None:
+    """``--scheduler ADDRESS``: the cluster's own worker diagnoses; the rows are those of the
+    LocalCluster run for the same files."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+        run = run_fleet([str(fleet["logs"] / "vehB" / "b[12].tlog*")], tmp_path / "o", config=fleet["config"],
+                        scheduler=cluster.scheduler_address, progress=False)
+    assert run.engine == f"Dask cluster at {cluster.scheduler_address} (1 worker thread(s))"
+    assert run.diagnosed == 2 and run.failed == 0
+    want = [r for r in fleet["run"].rows if Path(r["recording"]).name in ("b1.tlog", "b2.tlog.gz")]
+    drop = ("report", "outlier", "outlier_sigma", "outlier_note")
+    assert [{k: v for k, v in r.items() if k not in drop} for r in run.rows] == \
+        [{k: v for k, v in r.items() if k not in drop} for r in want]

@@ -18,8 +18,11 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
+from companion.diagnose.channels import has_commands
+from companion.diagnose.diagnosis import diagnose
 from companion.errors import FlowholdError, RecordingError
 from companion.recording import Recording, load_recording
+from companion.sensor_diagnose import run_sensor_diagnosis
 
 #: log times above this (2000-01-01) are UNIX times; below it a reader's boot time
 UNIX_2000_S = 946_684_800.0
@@ -64,18 +67,12 @@ def _sysid(rec: Recording) -> int:
 
 def _diagnose(rec: Recording, job: Job) -> tuple[dict[str, Any], int, float]:
     """The report (JSON), the frames used and the duration (s) of a loaded recording."""
-    from companion.diagnose.channels import has_commands
-
     if job.sensor_config is None and has_commands(rec):
-        from companion.diagnose.diagnosis import diagnose
-
         diag = diagnose(rec, job.config, profile=job.profile)
         return diag.report.to_json(), int(diag.data.n), float(diag.data.duration_s)
     if not any(n in rec for n in _FLOW):
         raise RecordingError(f"{Path(rec.path).name}: neither a commanded attitude (SET_ATTITUDE_TARGET or "
                              "ATTITUDE_TARGET) nor optical flow: nothing to diagnose")
-    from companion.sensor_diagnose import run_sensor_diagnosis
-
     sd = run_sensor_diagnosis(rec, job.config, profile=job.profile)
     t = sd.series.t_s
     return sd.report.to_json(), int(len(sd.rows)), float(t[-1] - t[0]) if len(t) > 1 else 0.0
