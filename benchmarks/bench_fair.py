@@ -114,10 +114,17 @@ print(json.dumps({"import_s": t1 - t0, "open_s": 0.0, "loop_s": t2 - t1, "messag
 """
 
 
-def baseline(rec: Recording) -> dict[str, Any]:
-    """The plain third-party read of ``rec``: pymavlink's loop (tlog, DataFlash) or pyulog."""
+def baseline(rec: Recording, variant: str = "plain") -> dict[str, Any]:
+    """The plain third-party read of ``rec``: pymavlink's loop (tlog, DataFlash) or pyulog.
+    ``variant`` (pymavlink only): "mavlink20" sets MAVLINK20=1 first; "no-fastcrc" hides the
+    fastcrc package, so pymavlink checks CRCs in Python (as without that dependency)."""
     la = load_avg()
-    r = _run_json(_PYULOG if rec.kind == "ulog" else _PYMAVLINK, str(rec.path))
+    code = _PYULOG if rec.kind == "ulog" else _PYMAVLINK
+    if variant == "mavlink20":
+        code = "import os\nos.environ['MAVLINK20'] = '1'\n" + code
+    elif variant == "no-fastcrc":
+        code = "import sys\nsys.modules['fastcrc'] = None\n" + code
+    r = _run_json(code, str(rec.path))
     r["total_s"] = r["open_s"] + r["loop_s"]
     r["msgs_per_s"] = r["messages"] / r["loop_s"] if r["loop_s"] > 0 else None
     r["load_before"], r["load_after"] = la, load_avg()
@@ -168,6 +175,62 @@ def command(args: list[str], repeat: int = 2, timeout_s: float = 3600.0) -> dict
                     "error": (out.stderr.strip().splitlines() or ["?"])[-1][:200], "load_before": la,
                     "load_after": load_avg()}
     return {"wall_s": min(walls), "walls_s": walls, "exit_code": 0, "load_before": la, "load_after": load_avg()}
+
+
+_PHASES = """
+import json, sys, time
+t0 = time.perf_counter()
+import numpy
+t1 = time.perf_counter()
+from companion.config import load_config
+from companion.info import format_summary, summarise
+from companion.profiles import Profile, detect_profile
+from companion.recording import load_recording
+from companion.replay import replay, write_csv, write_parquet
+import companion.tlog_reader
+t2 = time.perf_counter()
+cfg = load_config()
+rec = load_recording(sys.argv[1])
+t3 = time.perf_counter()
+profile = Profile(detect_profile(rec)[0])
+res = replay(rec, cfg, profile)
+t4 = time.perf_counter()
+write_csv(res, sys.argv[2])
+t5 = time.perf_counter()
+write_parquet(res, sys.argv[3])
+t6 = time.perf_counter()
+text = format_summary(summarise(rec))
+t7 = time.perf_counter()
+from companion.csv_format import format_rows, format_rows_reference
+from companion.replay import _csv_formats
+names, fmts = _csv_formats(res)
+cols = [res.columns[c] for c in names]
+t8 = time.perf_counter()
+fast = format_rows(cols, fmts)
+t9 = time.perf_counter()
+ref = format_rows_reference(cols, fmts)
+t10 = time.perf_counter()
+assert fast == ref
+print(json.dumps({"numpy_import_s": t1 - t0, "other_imports_s": t2 - t1, "read_s": t3 - t2, "replay_s": t4 - t3,
+                  "csv_s": t5 - t4, "parquet_s": t6 - t5, "info_summary_s": t7 - t6, "frames": len(res),
+                  "csv_values": len(res) * len(names), "csv_bytes": len(ref), "format_fast_s": t9 - t8,
+                  "format_python_s": t10 - t9}))
+"""
+
+
+def phases(path: Path, out_dir: Path) -> dict[str, Any]:
+    """Where the whole replay and info commands spend their time on ``path``, phase by phase, in
+    one fresh interpreter (the interpreter's own start-up is ``python_startup_s``)."""
+    la = load_avg()
+    t = time.perf_counter()
+    subprocess.run([sys.executable, "-c", "pass"], check=True)
+    startup = time.perf_counter() - t
+    r = _run_json(_PHASES, str(path), str(out_dir / "phases.csv"), str(out_dir / "phases.parquet"))
+    t = time.perf_counter()
+    subprocess.run([sys.executable, "-c", "import numba"], check=True)
+    numba_s = time.perf_counter() - t - startup
+    r.update({"python_startup_s": startup, "numba_import_only_s": numba_s, "load_before": la, "load_after": load_avg()})
+    return r
 
 
 def measure_recording(rec: Recording, out_dir: Path, repeat: int = 2) -> dict[str, Any]:
@@ -342,6 +405,9 @@ def history(workdir: Path, minutes: float = 60.0) -> dict[str, Any]:
         r = json.loads(out.stdout.strip().splitlines()[-1])
         r.update({"commit": HISTORY_COMMIT, "minutes": minutes, "load_before": la, "load_after": load_avg(),
                   "then": _quoted_then()})
+        # what else could make pymavlink slower: MAVLINK20, or pymavlink without fastcrc (pure-Python CRC)
+        sitl = Recording("flight_a", _gunzip(SITL_DIR / "flight_a.tlog.gz", workdir / "flight_a.tlog"), "tlog")
+        r["variants"] = {v: baseline(sitl, v) for v in ("plain", "mavlink20", "no-fastcrc")}
         return r
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -178,6 +178,13 @@ def section_reader(t: Table, quick: bool, workdir: Path) -> None:
                 result = f"{c['wall_s']:.2f} s" if c.get("wall_s") else f"failed: {c.get('error')}"
                 t.add("reader", f"{rec.label}: {what}", result, _x(q.get(key)), target)
     t.numbers["recordings"] = results
+    long = next((r for r in bench_fair.recordings(workdir, quick) if r.commands and "generated" in r.label), None)
+    if long is not None:
+        ph = bench_fair.phases(long.path, workdir / "outputs")
+        t.numbers["phases"] = {"label": long.label, **ph}
+        t.add("reader", f"{long.label}: where the commands' time goes",
+              ", ".join(f"{k.removesuffix('_s')} {v:.2f} s" for k, v in ph.items() if k.endswith("_s")
+                        and not k.startswith("load")))
 
 
 def section_growth(t: Table, quick: bool, workdir: Path, timeout_s: float) -> None:
