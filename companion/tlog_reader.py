@@ -391,9 +391,12 @@ def _is_stx(b: np.ndarray) -> np.ndarray:
 
 def _claimed_end(buf: np.ndarray, s: np.ndarray) -> np.ndarray:
     """Where packets starting at ``s`` end, by their STX, length and signed flag (int64)."""
-    v2 = buf[s] == STX_V2
-    sig = SIGNATURE_LEN * ((buf[s + 2] & v2) & 1)
-    return s + np.where(v2, HEADER_LEN_V2 + CRC_LEN, HEADER_LEN_V1 + CRC_LEN) + buf[s + 1] + sig
+    head = _view_as(buf, "<u4")[s]  # STX, length, flags (v2) in one gather (``buf`` is padded past the end)
+    v2 = (head & 0xFF) == STX_V2
+    length = (head >> 8) & 0xFF
+    signed = (head >> 16) & v2  # bit 0: MAVLink 2's "signed" flag
+    return s + np.where(v2, HEADER_LEN_V2 + CRC_LEN, HEADER_LEN_V1 + CRC_LEN) + length.astype(np.int64) + \
+        SIGNATURE_LEN * (signed & 1).astype(np.int64)
 
 
 def _find_stx(buf: np.ndarray, n_bytes: int, chunk: int = _SCAN_CHUNK) -> Iterator[np.ndarray]:
