@@ -247,8 +247,7 @@ def run_sweep(spec: SweepSpec, *, engine: Engine | None = None, batch_flights: i
         with Engine(in_process=True, progress=False) as here:
             return run_sweep(spec, engine=here, batch_flights=batch_flights, timings=timings)
     tasks = _tasks(spec, points, engine.n_workers, batch_flights)
-    if not engine.dask:
-        fastsim.warm_up()  # compile (or load) the kernel before the clock of the first batch
+    engine.on_every_worker(fastsim.warm_up)  # compile (or load) the kernel once per worker, before any batch
     for k, result in engine.map(_run_task, tasks, weights=[len(t[1]) for t in tasks], desc="sweep", unit="flight",
                                 names=[f"sweep-{t[0]}" for t in tasks]):
         if isinstance(result, TaskLost):

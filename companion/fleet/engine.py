@@ -121,6 +121,14 @@ class Engine:
 
     # -- running --------------------------------------------------------------------------------
 
+    def on_every_worker(self, fn: Callable[[], Any]) -> None:
+        """Run ``fn()`` once on every worker now (here, in-process): imports and compilation a task
+        would otherwise pay on its worker's first task. ``fn`` must be importable by the workers."""
+        if self.dask:
+            self._client.run(fn)
+        else:
+            fn()
+
     def map(self, fn: Callable[[Any], Any], items: Sequence[Any], *, weights: Sequence[int] | None = None,
             desc: str = "tasks", unit: str = "task", names: Sequence[str] | None = None
             ) -> Iterator[tuple[int, Any]]:

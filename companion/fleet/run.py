@@ -40,7 +40,7 @@ from companion.errors import UsageError, check_output, writing
 from companion.fleet.engine import INSTALL_HINT, Engine, TaskLost
 from companion.fleet.summary import write_summary
 from companion.fleet.table import flag_outliers, have_pyarrow, rows_of, write_csv, write_parquet
-from companion.fleet.work import FileResult, Job, diagnose_file
+from companion.fleet.work import FileResult, Job, diagnose_file, warm_up
 from companion.recording import recording_suffix
 
 __all__ = ["FleetRun", "find_recordings", "run_fleet", "run_cli"]
@@ -171,6 +171,7 @@ def run_fleet(inputs: list[str], out: str | Path, *, config: str | Path | None =
             run.engine, run.dashboard = engine.description, engine.dashboard
             if engine.dashboard:
                 print(f"dashboard: {engine.dashboard}", flush=True)
+            engine.on_every_worker(warm_up)
             for k, res in engine.map(diagnose_file, [jobs[i] for i in todo], desc="fleet", unit="file",
                                      names=[f"diagnose-{recs[i].name}" for i in todo]):
                 i = todo[k]

@@ -56,6 +56,10 @@ class FileResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
+def warm_up() -> None:
+    """Nothing to do: importing this module (which a worker does to run it) loads the diagnosis."""
+
+
 def _sysid(rec: Recording) -> int:
     """The system id that sent the flow (the vehicle), the most frequent one; -1 without flow."""
     for name in _FLOW:
