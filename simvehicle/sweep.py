@@ -536,6 +536,8 @@ def run_cli(args: argparse.Namespace) -> int:
     with engine:
         if engine.dashboard:
             print(f"dashboard: {engine.dashboard}", flush=True)
+        elif engine.dask:
+            print(f"dashboard: none ({engine.dashboard_note})", flush=True)
         rows = run_sweep(spec, engine=engine, batch_flights=args.batch)
         where = engine.description
     elapsed = time.perf_counter() - t0

@@ -65,7 +65,9 @@ class Engine:
             f"Dask is not installed: running in this process, one file after another "
             f"({INSTALL_HINT} for a LocalCluster on all cores, or --scheduler for a cluster)")
         self.progress = sys.stderr.isatty() if progress is None else progress
+        #: the address of Dask's dashboard (needs bokeh), or why there is none
         self.dashboard: str | None = None
+        self.dashboard_note = ""
         self.description = "in-process"
         self._client: Any = None
         self._cluster: Any = None
@@ -84,7 +86,7 @@ class Engine:
         try:
             if self.scheduler is None:
                 self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                             dashboard_address=":0")
+                                             host="127.0.0.1", dashboard_address="127.0.0.1:0")
                 self._client = Client(self._cluster)
                 self.description = f"Dask LocalCluster of {self.workers} worker(s)"
             else:
@@ -96,7 +98,10 @@ class Engine:
                 n = sum(self._client.nthreads().values())
                 self.workers = max(n, 1)
                 self.description = f"Dask cluster at {self.scheduler} ({n} worker thread(s))"
-            self.dashboard = self._client.dashboard_link or None
+            if importlib.util.find_spec("bokeh") is not None:
+                self.dashboard = self._client.dashboard_link or None
+            else:
+                self.dashboard_note = "Dask's dashboard needs bokeh: pip install 'bokeh>=3.1'"
         except BaseException:
             self.__exit__(None, None, None)
             raise

@@ -31,6 +31,7 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -148,8 +149,9 @@ def _vehicle(rec: Path, report: dict[str, Any], vehicle_from: str) -> str:
 def run_fleet(inputs: list[str], out: str | Path, *, config: str | Path | None = None, profile: str | None = None,
               sensor_config: str | None = None, scheduler: str | None = None, workers: int | None = None,
               in_process: bool = False, vehicle_from: str = "folder", progress: bool | None = None,
-              summary: bool = True) -> FleetRun:
-    """Diagnose the fleet (see the module's docs) and write its outputs into ``out``."""
+              summary: bool = True, say: Callable[[str], None] = lambda _line: None) -> FleetRun:
+    """Diagnose the fleet (see the module's docs) and write its outputs into ``out``. ``say``
+    gets the lines a user should see while it runs (the dashboard's address)."""
     if vehicle_from not in ("folder", "sysid"):
         raise UsageError(f"--vehicle-from must be folder or sysid, got {vehicle_from!r}")
     recs = find_recordings(inputs)
@@ -170,7 +172,9 @@ def run_fleet(inputs: list[str], out: str | Path, *, config: str | Path | None =
         with engine:
             run.engine, run.dashboard = engine.description, engine.dashboard
             if engine.dashboard:
-                print(f"dashboard: {engine.dashboard}", flush=True)
+                say(f"dashboard: {engine.dashboard}")
+            elif engine.dask:
+                say(f"dashboard: none ({engine.dashboard_note})")
             engine.on_every_worker(warm_up)
             for k, res in engine.map(diagnose_file, [jobs[i] for i in todo], desc="fleet", unit="file",
                                      names=[f"diagnose-{recs[i].name}" for i in todo]):
@@ -218,7 +222,8 @@ def run_cli(args: argparse.Namespace) -> int:
     """Entry point of ``python -m companion fleet`` (arguments declared in companion/cli.py)."""
     run = run_fleet(args.inputs, args.out, config=args.config, profile=args.profile,
                     sensor_config=args.sensor_config, scheduler=args.scheduler, workers=args.workers,
-                    in_process=args.in_process, vehicle_from=args.vehicle_from)
+                    in_process=args.in_process, vehicle_from=args.vehicle_from,
+                    say=lambda line: print(line, flush=True))
     if run.note:
         print(f"note: {run.note}")
     n_rec = len(run.recordings)
