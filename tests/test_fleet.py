@@ -211,14 +211,17 @@ def test_in_process_gives_the_same_table(fleet) -> None:
 
 
 def test_outliers_follow_the_combined_uncertainty() -> None:
-    """Closed form: moves of 1.41, 5.66 and 0.71 combined sigma, in time order (not name order)."""
-    def row(rec: str, t: float, p: float, sd: float, effect: str = "flow_scale") -> dict:
+    """Closed form: moves of 1.41, 5.66 and 0.71 combined sigma, in time order (not name order);
+    a move of an effect neither recording finds is not flagged, nor is the wind."""
+    def row(rec: str, t: float, p: float, sd: float, effect: str = "flow_scale", significant: bool = True) -> dict:
         return {"recording": rec, "vehicle": "v", "status": "ok", "effect": effect, "start_unix_s": t,
+                "significant": significant,
                 "params": {"scale_x": p, "start_s": t}, "sds": {"scale_x": sd, "start_s": 0.1},
                 "outlier": False, "outlier_sigma": math.nan, "outlier_note": ""}
 
     rows = [row("z_first", 0.0, 1.00, 0.01), row("c", 2.0, 1.10, 0.01), row("b", 1.0, 1.02, 0.01),
-            row("a", 3.0, 1.11, 0.01), row("w1", 0.0, 1.0, 0.01, "wind_force"), row("w2", 1.0, 5.0, 0.01, "wind_force")]
+            row("a", 3.0, 1.11, 0.01), row("w1", 0.0, 1.0, 0.01, "wind_force"), row("w2", 1.0, 5.0, 0.01, "wind_force"),
+            row("d1", 0.0, 0.0, 0.001, "flow_delay", False), row("d2", 1.0, 0.005, 0.001, "flow_delay", False)]
     flag_outliers(rows)
     got = {r["recording"]: (r["outlier"], r["outlier_sigma"]) for r in rows}
     assert math.isnan(got["z_first"][1]) and not got["z_first"][0]
@@ -226,6 +229,7 @@ def test_outliers_follow_the_combined_uncertainty() -> None:
     assert got["c"] == (True, pytest.approx(0.08 / math.hypot(0.01, 0.01)))
     assert got["a"] == (False, pytest.approx(0.01 / math.hypot(0.01, 0.01)))
     assert not got["w2"][0]  # wind is weather
+    assert got["d2"] == (False, pytest.approx(0.005 / math.hypot(0.001, 0.001)))  # 3.5 sigma, found in neither
 
 
 def test_without_dask_it_runs_in_process_and_says_how_to_get_the_cluster(monkeypatch) -> None:

@@ -210,7 +210,7 @@ def run_fleet(inputs: list[str], out: str | Path, *, config: str | Path | None =
                                                            f"({INSTALL_HINT})"
     if summary:
         run.outputs["summary"] = outdir / "summary.html"
-        note = (f"{run.diagnosed} diagnosed on {run.engine} in {run.wall_s:.1f} s, {run.skipped} skipped "
+        note = (f"{run.diagnosed} diagnosed ({run.engine}) in {run.wall_s:.1f} s, {run.skipped} skipped "
                 f"(reports newer than their files); model {config or 'configs/paper.toml'}, "
                 f"profile {profile or 'detected per recording'}.")
         with writing("--out", run.outputs["summary"]):

@@ -122,7 +122,8 @@ def write_summary(rows: list[dict[str, Any]], path: Path, *, title: str, run_not
     parts.append(f"<p class='lead'>{html.escape(lead)}</p><p>{html.escape(run_note)}</p>")
     parts.append("<h2>Outliers</h2><p>A parameter of a vehicle is compared with the same vehicle's previous "
                  f"recording: a change over {OUTLIER_SIGMA:g} combined standard deviations "
-                 "(sqrt(sd1^2 + sd2^2)) is flagged. The wind is weather, not the vehicle: not flagged. "
+                 "(sqrt(sd1^2 + sd2^2)) is flagged when either recording finds the effect. The wind is weather, "
+                 "not the vehicle: not flagged. "
                  "docs/diagnose.md finds the force channel's uncertainties optimistic by about 2x.</p>")
     parts.append(_table(["vehicle", "recording", "start (UTC)", "effect", "what moved"],
                         [[r["vehicle"], r["recording"], r["start_utc"], r["effect"], r["outlier_note"]]

@@ -11,9 +11,10 @@ Outliers. A vehicle's property should stay put between flights: for each vehicle
 parameter, recordings in time order, the change from the previous recording in combined standard
 deviations ``(p_i - p_prev) / sqrt(sd_i^2 + sd_prev^2)``; a row whose parameter moved by more than
 ``OUTLIER_SIGMA`` of them is flagged (``outlier``, ``outlier_sigma`` the largest move,
-``outlier_note`` what moved). Weather is not a property of the vehicle: ``wind_force`` is not
-flagged. docs/diagnose.md finds the force channel's uncertainties optimistic by about 2x in closed
-loop, hence 3 and not 2.
+``outlier_note`` what moved) when the effect is significant in one of the two recordings (the
+fitted value of an effect neither flight shows is noise about the nominal model). Weather is not
+a property of the vehicle: ``wind_force`` is not flagged. docs/diagnose.md finds the force
+channel's uncertainties optimistic by about 2x in closed loop, hence 3 and not 2.
 """
 
 from __future__ import annotations
@@ -92,7 +93,7 @@ def flag_outliers(rows: list[dict[str, Any]], sigma: float = OUTLIER_SIGMA) -> N
             groups.setdefault((r["vehicle"], r["effect"]), []).append(r)
     for members in groups.values():
         members.sort(key=_time_key)
-        last: dict[str, tuple[float, float, str]] = {}  # parameter -> (value, sd, recording) before
+        last: dict[str, tuple[float, float, str, bool]] = {}  # parameter -> (value, sd, recording, significant)
         for r in members:
             worst = math.nan
             notes = []
@@ -101,14 +102,14 @@ def flag_outliers(rows: list[dict[str, Any]], sigma: float = OUTLIER_SIGMA) -> N
                 if k in TIME_PARAMETERS or not (math.isfinite(p) and math.isfinite(sd) and sd > 0):
                     continue
                 if k in last:
-                    p0, sd0, rec0 = last[k]
+                    p0, sd0, rec0, sig0 = last[k]
                     moved = (p - p0) / math.hypot(sd, sd0)
                     if not math.isfinite(worst) or abs(moved) > worst:
                         worst = abs(moved)
-                    if abs(moved) > sigma:
+                    if abs(moved) > sigma and (sig0 or r["significant"]):
                         notes.append(f"{k} {p0:.4g} +- {sd0:.2g} -> {p:.4g} +- {sd:.2g} since {Path(rec0).name} "
                                      f"({moved:+.1f} sigma)")
-                last[k] = (p, sd, r["recording"])
+                last[k] = (p, sd, r["recording"], bool(r["significant"]))
             r["outlier_sigma"] = worst
             r["outlier"] = bool(notes)
             r["outlier_note"] = "; ".join(notes)
