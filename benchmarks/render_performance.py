@@ -194,13 +194,18 @@ def plot_growth(g: list[dict[str, Any]], n: dict[str, Any], out: Path) -> None:
         k = n.get(f"growth_exponent_{key}")
         ax.loglog([p[0] for p in pts], [p[1] for p in pts], style, color=color, marker="o",
                   label=f"{label}" + (f" (~ length^{k:.2f})" if k is not None else ""))
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    ax.set_xticks([r["minutes"] for r in g])
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("recording length (min), generated closed-loop flights")
     ax.set_ylabel("wall time (s)")
     m = n["machine"]
     ax.set_title(f"Cost against recording length (load average {m['load_min']:.1f}-{m['load_max']:.1f}, "
                  f"{m['cores']} shared cores)", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)

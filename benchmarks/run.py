@@ -11,12 +11,22 @@ Sections (each against a baseline measured in the same run):
 - ``latency``: the companion's step on UDP loopback, from a flow frame leaving the fake vehicle
   to its SET_ATTITUDE_TARGET arriving, p50 / p99 over 2000 frames at 50 Hz, under the default
   scheduler and under SCHED_FIFO (``bench_latency``). Target: p99 < 2 ms.
-- ``reader``: ``companion.tlog_reader.read_tlog`` against pymavlink's message loop on a
-  synthetic 60 min recording (``bench_reader``, from the recordings issue).
+- ``reader``: the fair baseline of issue 17 (``bench_fair``): on each recording (the SITL tlogs,
+  a generated 60 min closed-loop flight, the synthetic 60 min recording, the SITL DataFlash log,
+  a ULog), pymavlink's plain ``recv_match`` loop (DFReader for the .BIN, pyulog for the ULog)
+  against ``load_recording`` in process and the whole ``replay`` (CSV, Parquet) and ``info``
+  commands, and where the commands' time goes. Targets: read >= 150 x, commands >= 50 x on 60 min.
 - ``replay``: ``companion.replay.replay`` (columns) against ``replay_live`` (pymavlink message by
   message through the live core) on a closed-loop recording.
 - ``diagnose``: ``companion.diagnose`` on closed-loop recordings of 150 s, 10 min and 60 min,
   and the exponent of its cost against the length. Target: no worse than linear.
+- ``growth``: pymavlink's loop, read, and the whole replay, info and diagnose commands on
+  generated flights of 1 min to 2 h (``bench_fair.growth``).
+- ``history``: the earlier baseline (8-12 k msg/s) re-run with its own commit's code here.
+
+Every number goes to ``--json`` (default ``out/bench/results.json``) with the machine, its
+versions and its load average sampled every 5 s; ``benchmarks/render_performance.py`` renders
+``docs/performance.md`` and its plot from that file alone.
 
 The closed-loop recordings are written once by ``bench_sim.write_flight_tlog`` into
 ``--workdir`` (default ``out/bench``) and reused. A section whose code is not in the tree (yet)
