@@ -157,17 +157,20 @@ def _fleet_table(fleet: list[dict[str, Any]], meta: dict[str, Any]) -> list[str]
     base = fleet[0]["wall_s"]
     lines.append(f"fleet: {fleet[0]['tasks']} recordings of {meta['duration_s']:g} s "
                  f"(mean {fleet[0]['task_s_mean']:.2f} s of diagnosis each, in-process)")
-    lines.append("| mode | wall (s) | files/s | speed-up vs in-process | cluster start and warm-up (s) | "
-                 "overhead per task (ms) | bare scheduler per task (ms) |")
-    lines.append("|---|---|---|---|---|---|---|")
+    lines.append("| mode | wall (s) | files/s | speed-up vs in-process | mean task (s) | "
+                 "cluster start and warm-up (s) | overhead per task (ms) | bare scheduler per task (ms) |")
+    lines.append("|---|---|---|---|---|---|---|---|")
     for r in fleet:
         lines.append(f"| {r['mode']} | {r['wall_s']:.1f} | {r['tasks'] / r['wall_s']:.2f} | "
-                     f"{base / r['wall_s']:.2f}x | {r['startup_s']:.1f} | {1e3 * r['overhead_per_task_s']:.0f} | "
-                     f"{1e3 * r['bare_overhead_per_task_s']:.1f} |")
+                     f"{base / r['wall_s']:.2f}x | {r['task_s_mean']:.2f} | {r['startup_s']:.1f} | "
+                     f"{1e3 * r['overhead_per_task_s']:.0f} | {1e3 * r['bare_overhead_per_task_s']:.1f} |")
     one = next((r for r in fleet if r["workers"] == 1), None)
-    two = next((r for r in fleet if r["workers"] == 2), None)
-    if one and two:
-        lines.append(f"2 workers against 1: {one['wall_s'] / two['wall_s']:.2f}x")
+    for r in fleet:
+        if one and r["workers"] > 1:
+            cores = r["workers"] * one["task_s_mean"] / r["task_s_mean"]
+            lines.append(f"{r['workers']} workers against 1: {one['wall_s'] / r['wall_s']:.2f}x; each task took "
+                         f"{r['task_s_mean'] / one['task_s_mean']:.2f}x as long as on 1 worker, i.e. the workers had "
+                         f"about {cores:.1f} free core(s) between them")
     lines.append("")
     return lines
 
@@ -197,7 +200,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workdir", default=str(ROOT / "out" / "bench_fleet"))
     ap.add_argument("--skip", choices=("fleet", "sweep"), nargs="*", default=[])
     ap.add_argument("--json", help="also write the numbers here")
+    ap.add_argument("--table-from", help="print the table of a --json file written before, and stop")
     args = ap.parse_args(argv)
+    if args.table_from:
+        saved = json.loads(Path(args.table_from).read_text())
+        print(table(saved["fleet"], saved["sweep"], saved["meta"]))
+        return 0
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     meta: dict[str, Any] = {"cpus": os.cpu_count(), "python": platform.python_version(),
