@@ -305,3 +305,19 @@ def test_the_fleet_on_a_running_scheduler(fleet, tmp_path) -> None:
     drop = ("report", "outlier", "outlier_sigma", "outlier_note")
     assert [{k: v for k, v in r.items() if k not in drop} for r in run.rows] == \
         [{k: v for k, v in r.items() if k not in drop} for r in want]
+
+
+def test_a_column_map_applies_to_the_csv_recordings_only(fleet, tmp_path) -> None:
+    """``--sensor-config``: the StampFly CSV goes to the sensor-only diagnosis through it, the
+    .tlog beside it is read as a .tlog (its rows as without the map)."""
+    csv_gz = REPO / "data" / "real" / "stampfly" / "square01_13s.csv.gz"
+    run = run_fleet([str(csv_gz), str(fleet["logs"] / "vehB" / "b1.tlog")], tmp_path / "o", config=fleet["config"],
+                    sensor_config=str(REPO / "configs" / "sensors" / "stampfly.toml"), in_process=True,
+                    progress=False)
+    by = _by_file(run.rows)
+    assert run.failed == 0 and {r["mode"] for r in by["square01_13s.csv.gz"]} == {"sensor"}
+    assert by["square01_13s.csv.gz"][0]["duration_s"] == pytest.approx(13.0, abs=0.05)  # the file's 13 s
+    drop = ("report", "outlier", "outlier_sigma", "outlier_note", "vehicle")
+    want = _by_file(fleet["run"].rows)["b1.tlog"]
+    assert [{k: v for k, v in r.items() if k not in drop} for r in by["b1.tlog"]] == \
+        [{k: v for k, v in r.items() if k not in drop} for r in want]

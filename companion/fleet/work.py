@@ -21,7 +21,7 @@ from companion.config import Config
 from companion.diagnose.channels import has_commands
 from companion.diagnose.diagnosis import diagnose
 from companion.errors import FlowholdError, RecordingError
-from companion.recording import Recording, load_recording
+from companion.recording import Recording, load_recording, recording_suffix
 from companion.sensor_diagnose import run_sensor_diagnosis
 
 #: log times above this (2000-01-01) are UNIX times; below it a reader's boot time
@@ -32,7 +32,8 @@ _FLOW = ("OPTICAL_FLOW", "OPTICAL_FLOW_RAD")
 @dataclass(frozen=True)
 class Job:
     """What a worker needs: the recording's path (readable from the worker), the nominal model
-    (shipped as an object: no config file needed on the worker), the profile and a CSV column map."""
+    (shipped as an object: no config file needed on the worker), the profile and the column map
+    of the CSV recordings (other formats ignore it)."""
 
     path: str
     config: Config
@@ -69,9 +70,10 @@ def _sysid(rec: Recording) -> int:
     return -1
 
 
-def _diagnose(rec: Recording, job: Job) -> tuple[dict[str, Any], int, float]:
-    """The report (JSON), the frames used and the duration (s) of a loaded recording."""
-    if job.sensor_config is None and has_commands(rec):
+def _diagnose(rec: Recording, job: Job, sensor_only: bool) -> tuple[dict[str, Any], int, float]:
+    """The report (JSON), the frames used and the duration (s) of a loaded recording (a CSV read
+    through a column map is ``sensor_only``, as ``diagnose --sensor-config`` takes it)."""
+    if not sensor_only and has_commands(rec):
         diag = diagnose(rec, job.config, profile=job.profile)
         return diag.report.to_json(), int(diag.data.n), float(diag.data.duration_s)
     if not any(n in rec for n in _FLOW):
@@ -90,11 +92,12 @@ def diagnose_file(job: Job) -> FileResult:
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            rec = load_recording(job.path, sensor_config=job.sensor_config)
+            column_map = job.sensor_config if recording_suffix(job.path) == ".csv" else None
+            rec = load_recording(job.path, sensor_config=column_map)
             out.sysid = _sysid(rec)
             start = rec.t0_s
             out.start_unix_s = start if start > UNIX_2000_S else math.nan
-            report, out.frames_used, out.duration_s = _diagnose(rec, job)
+            report, out.frames_used, out.duration_s = _diagnose(rec, job, column_map is not None)
         seen: list[str] = []
         for w in caught:
             line = f"warning during the diagnosis: {w.category.__name__}: {w.message}"
