@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import EFFECT_TYPES, Config, config_from_dict, read_toml
-from companion.errors import ConfigError, FlowholdError, check_output, writing
+from companion.errors import ConfigError, FlowholdError, UsageError, check_output, writing
 from companion.fleet.engine import Engine, TaskLost
 from simvehicle import fastsim
 from simvehicle.scenarios import SCENARIOS, figures
@@ -220,7 +220,7 @@ def _tasks(spec: SweepSpec, points: list[tuple[dict[str, Any], Config]], workers
         for seed in spec.seeds:
             flights.append((len(flights), cfg, seed))
     if batch_flights is not None and batch_flights < 1:
-        raise ConfigError(f"--batch must be >= 1 flight per task, got {batch_flights}")
+        raise UsageError(f"--batch must be >= 1 flight per task, got {batch_flights}")
     size = batch_flights or max(1, min(MAX_BATCH, math.ceil(len(flights) / max(1, workers * 4))))
     tasks = []
     for name in spec.scenarios:
@@ -528,7 +528,7 @@ def run_cli(args: argparse.Namespace) -> int:
     spec = load_sweep(args.sweep_config)
     engine = Engine(scheduler=args.scheduler, workers=args.workers, in_process=args.in_process)
     if args.batch is not None and args.batch < 1:
-        raise ConfigError(f"--batch must be >= 1 flight per task, got {args.batch}")
+        raise UsageError(f"--batch must be >= 1 flight per task, got {args.batch}")
     out = check_output(args.out, "--out", folder=True)
     if engine.note:
         print(f"note: {engine.note.replace('one file after another', 'one batch after another')}")

@@ -160,6 +160,10 @@ def run_fleet(inputs: list[str], out: str | Path, *, config: str | Path | None =
     cfg = load_config(config)
     if sensor_config is not None and not Path(sensor_config).is_file():
         raise UsageError(f"--sensor-config: not found: {sensor_config}")
+    inside = outdir.resolve()
+    recs = [p for p in recs if inside not in p.resolve().parents]  # never our own fleet.csv
+    if not recs:
+        raise UsageError(f"no recording outside --out {outdir}")
     root = Path(os.path.commonpath([str(p.resolve().parent) for p in recs]))
     jobs = [Job(str(p), cfg, profile, sensor_config) for p in recs]
     key = _settings_key(jobs[0])
