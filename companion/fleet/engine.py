@@ -25,6 +25,8 @@ from companion.errors import UsageError
 
 #: how a user gets the cluster mode
 INSTALL_HINT = "pip install 'flowhold[cluster]'"
+#: how long to wait for a first worker on a cluster that has none yet (s)
+WAIT_FOR_WORKERS_S = 30.0
 #: how many times a task is run again after its worker died (the LocalCluster's scheduler setting)
 RETRIES_AFTER_WORKER_DEATH = 1
 
@@ -95,6 +97,13 @@ class Engine:
                 except (OSError, TimeoutError, ValueError) as exc:
                     raise UsageError(f"--scheduler {self.scheduler}: cannot reach the Dask scheduler ({exc})") \
                         from None
+                if not self._client.nthreads():
+                    try:
+                        self._client.wait_for_workers(1, timeout=WAIT_FOR_WORKERS_S)
+                    except TimeoutError:
+                        raise UsageError(f"--scheduler {self.scheduler}: the cluster has no worker (waited "
+                                         f"{WAIT_FOR_WORKERS_S:g} s); start them with `dask worker "
+                                         f"{self.scheduler} --nthreads 1`") from None
                 n = sum(self._client.nthreads().values())
                 self.workers = max(n, 1)
                 self.description = f"Dask cluster at {self.scheduler} ({n} worker thread(s))"
