@@ -242,6 +242,25 @@ def test_without_dask_it_runs_in_process_and_says_how_to_get_the_cluster(monkeyp
         eng.Engine(scheduler="tcp://127.0.0.1:8786")
 
 
+def test_the_base_install_gives_the_same_rows_in_process(fleet, tmp_path, monkeypatch) -> None:
+    """Without Dask and pyarrow: in-process, the same rows, a CSV and no Parquet, and the note
+    says how to get both."""
+    import companion.fleet.run as fleet_run
+
+    monkeypatch.setattr(eng, "have_dask", lambda: False)
+    monkeypatch.setattr(fleet_run, "have_pyarrow", lambda: False)
+    run = run_fleet([str(fleet["logs"] / "vehB" / "b1.tlog")], tmp_path / "o", config=fleet["config"], workers=2,
+                    progress=False)
+    assert run.engine == "in-process" and "parquet" not in run.outputs
+    assert not (tmp_path / "o" / "fleet.parquet").exists() and (tmp_path / "o" / "fleet.csv").is_file()
+    assert "Dask is not installed" in run.note and "pyarrow is not installed" in run.note
+    assert run.note.count("pip install 'flowhold[cluster]'") == 2
+    drop = ("report", "outlier", "outlier_sigma", "outlier_note")
+    want = _by_file(fleet["run"].rows)["b1.tlog"]
+    assert [{k: v for k, v in r.items() if k not in drop} for r in run.rows] == \
+        [{k: v for k, v in r.items() if k not in drop} for r in want]
+
+
 def die_on_first_try(marker: str) -> int:
     """Kills its worker process the first time (no marker yet), returns its pid the second."""
     if not os.path.exists(marker):
