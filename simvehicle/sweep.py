@@ -444,9 +444,10 @@ def plot_sweep(rows: list[dict[str, Any]], spec: SweepSpec, path: str | Path,
     from matplotlib.patches import Rectangle
 
     marks = anomalies(rows, spec) if marks is None else marks
-    codes: dict[tuple[int, ...], str] = {}
-    for a in marks:
-        codes[a.cell] = codes.get(a.cell, "") + a.code
+    letters: dict[tuple[int, ...], set[str]] = {}
+    for a in marks:  # one mark per row: a cell of several seeds or further axes has a letter once
+        letters.setdefault(a.cell, set()).add(a.code)
+    codes = {cell: "".join(c for c in "HSGN" if c in found) for cell, found in letters.items()}
     metrics = [m for m in HEADLINE if any(m in r for r in rows)]
     # where the companion held (a gate rejected the data) the figures mean little: show where
     metrics += [f"{s}_held_frames" for s in spec.scenarios if any(r.get(f"{s}_held_frames", 0) > 0 for r in rows)]

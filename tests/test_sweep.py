@@ -223,6 +223,10 @@ def test_anomalous_cells_are_where_the_scene_rate_passes_the_spike_gate(tmp_path
     assert f"{7.4 * 0.25:.2f} m/s" in settled.cause  # the fastest speed it can see
     lines = sweep.describe(marks, spec)
     assert any(line.startswith("H at altitude_m = 0.25, max_flow_rate_rad_s = 7.4 (1 cell(s))") for line in lines)
+    # with seeds, a cell holds several rows: its marks are per row, its line in the legend one
+    seeded = sweep.load_sweep(_write(tmp_path, path.read_text().replace("[grid]", "seeds = [0, 1]\n[grid]"), "t.toml"))
+    twice = sweep.anomalies(sweep.run_sweep(seeded), seeded)
+    assert len(twice) == 2 * len(marks) and sweep.describe(twice, seeded) == lines
     sweep.plot_sweep(rows, spec, tmp_path / "p.png", marks)
     assert (tmp_path / "p.png").stat().st_size > 20_000
 
