@@ -25,6 +25,7 @@ import pytest
 
 from companion.errors import UsageError
 from companion.fleet import engine as eng
+from companion.fleet import run as fleet_run
 from companion.fleet.run import find_recordings, run_fleet
 from companion.fleet.table import OUTLIER_SIGMA, flag_outliers, read_parquet
 from simvehicle import flightgen as fg
@@ -245,8 +246,6 @@ def test_without_dask_it_runs_in_process_and_says_how_to_get_the_cluster(monkeyp
 def test_the_base_install_gives_the_same_rows_in_process(fleet, tmp_path, monkeypatch) -> None:
     """Without Dask and pyarrow: in-process, the same rows, a CSV and no Parquet, and the note
     says how to get both."""
-    import companion.fleet.run as fleet_run
-
     monkeypatch.setattr(eng, "have_dask", lambda: False)
     monkeypatch.setattr(fleet_run, "have_pyarrow", lambda: False)
     run = run_fleet([str(fleet["logs"] / "vehB" / "b1.tlog")], tmp_path / "o", config=fleet["config"], workers=2,
