@@ -352,12 +352,14 @@ def main(argv: list[str] | None = None) -> int:
     if "machine" not in results.get("numbers", {}):
         print(f"error: {src} has no machine record (written by an older benchmarks/run.py)", file=sys.stderr)
         return 2
-    if src.resolve() != RESULTS_COPY.resolve():
-        shutil.copyfile(src, RESULTS_COPY)
+    out = Path(args.out)
+    results_copy, plot = out.parent / RESULTS_COPY.name, out.parent / PLOT.name  # beside the page it serves
+    if src.resolve() != results_copy.resolve():
+        shutil.copyfile(src, results_copy)
     if results["numbers"].get("growth"):
-        plot_growth(results["numbers"]["growth"], results["numbers"], PLOT)
-    Path(args.out).write_text(render(results))
-    print(f"wrote {args.out}, {PLOT.name} and {RESULTS_COPY.name}", file=sys.stderr)
+        plot_growth(results["numbers"]["growth"], results["numbers"], plot)
+    out.write_text(render(results))
+    print(f"wrote {out}, {plot} and {results_copy}", file=sys.stderr)
     return 0
 
 
