@@ -165,7 +165,9 @@ def run_fleet(inputs: list[str], out: str | Path, *, config: str | Path | None =
     if not recs:
         raise UsageError(f"no recording outside --out {outdir}")
     root = Path(os.path.commonpath([str(p.resolve().parent) for p in recs]))
-    jobs = [Job(str(p), cfg, profile, sensor_config) for p in recs]
+    # absolute paths: a worker on another machine shares the storage, not our working directory
+    column_map = str(Path(sensor_config).resolve()) if sensor_config else None
+    jobs = [Job(str(p.resolve()), cfg, profile, column_map) for p in recs]
     key = _settings_key(jobs[0])
     reports = [_report_path(outdir, p, root) for p in recs]
     todo = [i for i, (p, r) in enumerate(zip(recs, reports, strict=True)) if not _fresh(r, p, key)]
