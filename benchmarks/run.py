@@ -268,7 +268,7 @@ def section_replay(t: Table, quick: bool, workdir: Path) -> None:
     t.numbers["replay"] = {"duration_s": dur, "frames": frames, "replay_s": t_cols, "replay_live_s": t_live}
     del res
     t.add("replay", f"companion replay, {dur / 60:g} min closed-loop flight ({frames:,} frames)",
-          f"{t_cols:.2f} s", f"{t_live / t_cols:.0f} x pymavlink",
+          f"{t_cols:.2f} s", f"{t_live / t_cols:.0f} x replay_live",
           f"replay_live (pymavlink, message by message) {t_live:.1f} s")
 
 
