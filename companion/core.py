@@ -45,7 +45,12 @@ sensor rate, and stamps it with the send time, so a sample can arrive twice unde
 flow message whose payload (scene x/y, quality, integration time, body rates) equals the last
 frame's and whose time is less than ``REPEAT_WINDOW_FRAMES`` nominal frames after it is that
 sample again (the same payload a whole frame later is a new sample of a still, noise-free
-sensor, and is used). A frame whose time is not after the last frame's, by less than
+sensor, and is used: the paper profile's integer counts really repeat when the sensor is still).
+In the ``ardupilot`` profile the payload carries float rates and the gyro, which a real sensor
+never repeats to the bit, and ArduCopter re-sends its last sample for ~0.5 s after the sensor
+stops (issue 18): there an identical payload is a repeat whatever its time, so the flow timeout
+runs from the last new sample (``repeat_window``; exception: body rates exactly 0.0, a noise-free
+simulated source). A frame whose time is not after the last frame's, by less than
 ``FRAME_REBOOT_S`` (more is a vehicle reboot: a new frame), is a duplicate or out of order.
 
 Failsafe: when the frame cannot be trusted (quality 0, a count spike, no gyro near the frame,
@@ -296,13 +301,27 @@ def estimate_frames(codes: np.ndarray, time_s: np.ndarray, prev_time_s: np.ndarr
 # 2. The live alignment rules over a recording's columns
 
 
-def repeat_window(integration_s: np.ndarray, nominal_window_s: float) -> np.ndarray:
+def repeat_window(integration_s: np.ndarray, nominal_window_s: float,
+                  profile: Profile = Profile.PAPER, payload: np.ndarray | None = None) -> np.ndarray:
     """The repeat window of each frame: ``REPEAT_WINDOW_FRAMES`` of the reading's own span when
-    the message states one, else the nominal window (as ``CompanionCore._is_repeat``)."""
+    the message states one, else the nominal window (as ``CompanionCore._is_repeat``). In the
+    ``ardupilot`` profile the window is infinite: float rates equal to the bit are the sample
+    ArduPilot re-sends (it keeps streaming the last sample ~0.5 s after the sensor stops), never a
+    new one, so a frozen flow is a lost flow (issue 18). The one exception: a payload (n, 6, as
+    ``CompanionCore.payload``) whose body rates (the gyro ArduPilot sends with the sample) are
+    both exactly 0.0 keeps the frame window: a real gyro is never exactly 0.0, so such a sample
+    comes from a noise-free (simulated or converted) source, where a still sensor really repeats."""
     integ = np.asarray(integration_s, dtype=float)
     with np.errstate(invalid="ignore"):
         own = np.isfinite(integ) & (integ > 0.0)
-    return np.where(own, REPEAT_WINDOW_FRAMES * np.where(own, integ, 0.0), nominal_window_s)
+    window = np.where(own, REPEAT_WINDOW_FRAMES * np.where(own, integ, 0.0), nominal_window_s)
+    if profile is Profile.ARDUPILOT:
+        if payload is None:
+            return np.full(window.shape, math.inf)
+        pl = np.asarray(payload, dtype=float)
+        still = (pl[:, 4] == 0.0) & (pl[:, 5] == 0.0)
+        return np.where(still, window, math.inf)
+    return window
 
 
 def repeat_mask(time_s: np.ndarray, payload: np.ndarray, window_s: float | np.ndarray) -> np.ndarray:
@@ -854,6 +873,8 @@ class CompanionCore:
         window = self.params.repeat_window_s
         if math.isfinite(f.integration_s) and f.integration_s > 0.0:  # the reading states its own span
             window = REPEAT_WINDOW_FRAMES * f.integration_s
+        if self.profile is Profile.ARDUPILOT and not payload[4] == payload[5] == 0.0:
+            window = math.inf  # float rates equal to the bit: a re-send, whatever its time (repeat_window)
         if not 0.0 <= dt < window:
             return False
         return all(a == b or (a != a and b != b) for a, b in zip(payload, prev, strict=True))

@@ -362,7 +362,8 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
     t_all = np.asarray(fc.time_s, float)
 
     # repeated samples: the same payload again within the repeat window is not a new frame
-    rep = repeat_mask(t_all, _payload(fc), repeat_window(fc.integration_s, p.repeat_window_s))
+    pl = _payload(fc)
+    rep = repeat_mask(t_all, pl, repeat_window(fc.integration_s, p.repeat_window_s, profile, pl))
     keep = np.flatnonzero(~rep)
     n = len(keep)
     if rep.any():
