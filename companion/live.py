@@ -433,6 +433,8 @@ class LiveCompanion:
         self.last_vehicle_wall = -math.inf
         self.last_heartbeat_wall = -math.inf
         self.last_cmd_wall = -math.inf
+        #: wall time of the last command paced by the vehicle's clock (a step, or a vehicle-time hold)
+        self.last_vehicle_cmd_wall = -math.inf
         self.last_step: StepOutput | None = None
         self.last_held = False  # the last step held
         self.last_cmd_rad = (0.0, 0.0)
@@ -723,6 +725,7 @@ class LiveCompanion:
                 self._send(outbound.vision_speed(self.conn.mav, int(round(out.time_s * 1e6)), out.vx_m_s,
                                                  out.vy_m_s))
             return
+        self.last_vehicle_cmd_wall = now
         self._command(out.time_s, out.roll_cmd_rad, out.pitch_cmd_rad, out.vx_set_m_s, out.vy_set_m_s, now,
                       estimate=None if self.last_held else (out.vx_m_s, out.vy_m_s))
         self._report(out.hold_cause)
@@ -737,8 +740,11 @@ class LiveCompanion:
             return
         if self.flow_ref_s is None or t_s < self.flow_ref_s - REBOOT_JUMP_S:
             self.flow_ref_s = t_s
-        if t_s - self.flow_ref_s > self.cfg.companion.flow_timeout_s + 1e-9 and t_s != self.last_hold_stamp_s:
+        # one level command per frame period of vehicle time (the gyro may stream faster than the flow)
+        if t_s - self.flow_ref_s > self.cfg.companion.flow_timeout_s + 1e-9 and (
+                self.last_hold_stamp_s is None or not 0.0 <= t_s - self.last_hold_stamp_s < 0.999 * self.T):
             self.last_hold_stamp_s = t_s
+            self.last_vehicle_cmd_wall = now
             self.counters["holds: flow stale (vehicle time)"] += 1
             sp = self._effective_setpoint(now)
             self._command(t_s, 0.0, 0.0, sp[0], sp[1], now, estimate=None)
@@ -793,7 +799,10 @@ class LiveCompanion:
         timeout = self.cfg.companion.flow_timeout_s
         if now - self.last_flow_wall <= timeout:
             self._next_wall_hold = now + self.T
-        elif now >= self._next_wall_hold and now - self.last_cmd_wall >= 0.5 * self.T:
+        elif now >= self._next_wall_hold and now - self.last_cmd_wall >= 0.5 * self.T \
+                and now - self.last_vehicle_cmd_wall > 1.5 * self.T:
+            # the wall clock commands only while the vehicle's clock is silent: one clock at a time,
+            # one level command per frame period (issue 18: both fired, ~100 Hz)
             self._next_wall_hold = max(self._next_wall_hold + self.T, now - self.T)  # frame rate, no burst
             cause = HoldCause.LINK if now - self.last_vehicle_wall > timeout else HoldCause.FLOW_STALE
             self.counters[f"holds: {cause.value} (wall clock)"] += 1
