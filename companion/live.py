@@ -409,6 +409,7 @@ class LiveCompanion:
         self.base_setpoint = setpoint_m_s or (0.0, 0.0)
         self.gcs_setpoint: tuple[float, float] | None = None
         self.gcs_setpoint_wall = 0.0
+        self._ramp_said = False  # "GCS setpoints stopped" said for the current setpoint
         self.T = cfg.flow_sensor.frame_period_s
         self.tilt_limit = cfg.controller.tilt_limit_rad
         self.commander = Commander()
@@ -632,6 +633,7 @@ class LiveCompanion:
             if self.router.last_setpoint_time is not None:
                 self.gcs_setpoint = self.core.setpoint_m_s
                 self.gcs_setpoint_wall = now
+                self._ramp_said = False
         elif mtype in ("OPTICAL_FLOW", "OPTICAL_FLOW_RAD") and not self.profile_known:
             if vehicle:
                 self.counters["flow frames before the profile was known"] += 1
@@ -796,6 +798,13 @@ class LiveCompanion:
             self.out("flowhold: link lost (no vehicle HEARTBEAT)" if lost else "flowhold: link back")
         if not self.in_control:
             return
+        sp_timeout = self.cfg.companion.setpoint_timeout_s
+        if self.gcs_setpoint is not None and not self._ramp_said and now - self.gcs_setpoint_wall > sp_timeout:
+            self._ramp_said = True  # issue 18: say it when the GCS's setpoints stop and the ramp begins
+            self._statustext("flowhold: GCS setpoints stopped, ramp to hold", mav.MAV_SEVERITY_WARNING,
+                             console=f"flowhold: GCS setpoints stopped for {sp_timeout:g} s: ramping to "
+                                     f"{self.base_setpoint[0]:+.2f} {self.base_setpoint[1]:+.2f} m/s over "
+                                     f"{sp_timeout:g} s")
         timeout = self.cfg.companion.flow_timeout_s
         if now - self.last_flow_wall <= timeout:
             self._next_wall_hold = now + self.T
