@@ -119,7 +119,7 @@ def _cond_values(data: FlightData, fp: FlowProblem, p_flow: np.ndarray) -> dict[
 
 
 def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp: FlowProblem,
-           res: GroupResult, c: int) -> list[Term]:
+           res: GroupResult, c: int, fstate: FlowGroupState) -> list[Term]:
     """Candidate-term library for channel c of a group (rows aligned with its residual)."""
     t = data.t_s
     segs = data.segments()
@@ -154,11 +154,14 @@ def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp
         # regressors from the attitude the fitted loop gives for the recorded commands, not from the
         # recorded attitude: differentiated, the recorded attitude's own noise would sit in both the
         # residual and the regressor and read as a gyro scale error (errors in variables)
-        r = gp.rate
+        # (rows the simulation does not reach, e.g. between the attitude fit's segments after lost
+        # commands, take the gyro's own mean rate: its noise is not the attitude's either)
+        r = gp.gyro.copy()
         if ap.final_p is not None:
             y = ap.simulate(*(float(x) for x in ap.final_p))
-            if np.all(np.isfinite(y[:, gp.k])) and np.all(np.isfinite(y[:, gp.k_prev])):
-                r = (y[:, gp.k] - y[:, gp.k_prev]) / (t[gp.k] - t[gp.k_prev])
+            sim = (y[:, gp.k] - y[:, gp.k_prev]) / (t[gp.k] - t[gp.k_prev])
+            ok = np.isfinite(sim)
+            r[ok] = sim[ok]
         rd = np.gradient(r, gp.t_s, axis=1) if r.shape[1] > 1 else np.zeros_like(r)
         o = 1 - c
         return [Term("attitude rate", "a gyro scale-factor error", "rad/s", r[c]),
@@ -189,7 +192,7 @@ def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp
                ("translation / height", "a range error that grows at low height", "rad/m", YA[i]),
                ("other-axis translation", "the flow axes turned with respect to the motion", "rad", Y[o]),
                ("rotation squared", "a non-linear flow response", "rad^2", R[i][W] ** 2)]
-        return [Term(n, w, u, (v @ fp.P).ravel()) for n, w, u, v in raw]
+        return [Term(n, w, u, fstate.whiten[i](v @ fp.P).ravel()) for n, w, u, v in raw]
     return []
 
 
@@ -288,7 +291,7 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
                     f.explanation += (f" This flight cannot tell it from {others}: each predicts held-out data as "
                                       f"well; a flight with more manoeuvring (and height changes) would.")
             report.findings.append(f)
-        _unexplained(name, res, data, ap, gp, fp, settings, report)
+        _unexplained(name, res, data, ap, gp, fp, fstate, settings, report)
         report.notes.extend(res.selector.notes)
     report.findings.sort(key=lambda f: (not f.significant, -(f.fit.improvement_pct if f.fit else 0.0)))
     report.headline = headline(report)
@@ -372,7 +375,7 @@ def _finding(effect: str, comp: Comparison, res: GroupResult, data: FlightData, 
 
 
 def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProblem, gp: GyroProblem,
-                 fp: FlowProblem, settings: Settings, report: Report) -> None:
+                 fp: FlowProblem, fstate: FlowGroupState, settings: Settings, report: Report) -> None:
     g = res.group
     sel = res.selector
     for c, ch in enumerate(g.channels):
@@ -384,7 +387,7 @@ def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProb
         res.mismatch_windows[ch] = excess_windows(tt, res.r_nominal[c], sigma)
         windows = excess_windows(tt, r, sigma)
         res.unexplained_windows[ch] = windows
-        terms = _terms(name, data, ap, gp, fp, res, c)
+        terms = _terms(name, data, ap, gp, fp, res, c, fstate)
         sp = sparse_fit(r, terms, sel.folds[c], sel.K) if terms else None
         if sp is not None:
             res.sparse[ch] = sp

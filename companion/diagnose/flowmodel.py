@@ -124,7 +124,8 @@ class FlowProblem:
 
     def __init__(self, data: FlightData, *, mass_kg: float, gravity_m_s2: float, flow_window_s: float = 1.0,
                  force_window_s: float = 1.0, average_s: float = 0.2, max_flow_windows: int = 1000,
-                 rotation_angles: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 rotation_angles: tuple[np.ndarray, np.ndarray] | None = None,
+                 scene_angle: np.ndarray | None = None) -> None:
         self.data = data
         self.mass_kg = mass_kg
         self.g = gravity_m_s2
@@ -155,7 +156,7 @@ class FlowProblem:
             for i in (0, 1):
                 s = AXIS_SIGN[i]
                 self.R[i, a:b] = s * (rot[i][a:b] - rot[i][a])
-                self.Phi[i, a:b] = np.cumsum(dphi[i][a:b])
+                self.Phi[i, a:b] = np.cumsum(dphi[i][a:b]) if scene_angle is None else scene_angle[i, a:b]
                 acc = s * self.g * np.tan(ang[i][a:b])
                 self.V[i, a:b] = _cumtrapz(acc, ts)
                 self.D[i, a:b] = _cumtrapz(self.V[i, a:b], ts)
@@ -230,6 +231,29 @@ class FlowProblem:
         self._den0 = t[self._k0 + h] - t[self._k0 - h]
         self._den1 = t[self._k1 + h] - t[self._k1 - h]
         self._dv_tilt = self._bavg(self.D, self._k1, self._den1) - self._bavg(self.D, self._k0, self._den0)
+        #: constant residual offsets set by ``anchor`` (None: this problem's own nominal residual)
+        self._flow_offset: np.ndarray | None = None
+        self._force_offset: np.ndarray | None = None
+
+    def anchor(self, base: FlowProblem) -> None:
+        """Take the nominal residual from ``base`` (the same flight, its rotation from another
+        source) and only the change with the parameters from this problem:
+
+            r(p) = r_base(NOMINAL) + [r_self(p) - r_self(NOMINAL)]
+
+        Why: the residual compared with the rotation of a noisy source holds that source's noise,
+        and so does every regressor (rotation gain, delay, lever arm, scale) built from the same
+        source: errors in variables, which a least-squares fit reads as a rotation gain below 1, a
+        delay, a scale, however many held-out folds confirm it (they share the noise too). With the
+        regressors from a source whose noise is independent of the residual's, noise cannot make an
+        effect; a real one still shows (both sources see the true rotation). At the nominal
+        parameters nothing changes."""
+        if base.flow.idx.shape != self.flow.idx.shape or base.force.idx.shape != self.force.idx.shape:
+            raise ValueError("anchor: the two problems must share their windows")
+        self._flow_offset = None
+        self._force_offset = None
+        self._flow_offset = base.flow_residual(NOMINAL) - self.flow_residual(NOMINAL)
+        self._force_offset = base.force_residual(NOMINAL) - self.force_residual(NOMINAL)
 
     # -- model pieces --------------------------------------------------------------------------
 
@@ -307,7 +331,8 @@ class FlowProblem:
         e = self._Phiw.copy()
         e[0] -= (c * body[0] + s * body[1]) / kx
         e[1] -= (-s * body[0] + c * body[1]) / ky
-        return e @ self.P
+        e = e @ self.P
+        return e if self._flow_offset is None else e + self._flow_offset
 
     def flow_velocity(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Odometry from the flow under the model's sensor geometry: X (2, n) in m (per segment,
@@ -393,4 +418,5 @@ class FlowProblem:
         m = self.mass_kg
         e = (f["dv"] - f["dv_tilt"] + (p[5] / m) * f["dx"] + (p[9] / m) * f["dq"]
              - (np.array([[p[6]], [p[7]]]) / m) * f["dt1"])
-        return e * m / f["span_s"]
+        e = e * m / f["span_s"]
+        return e if self._force_offset is None else e + self._force_offset

@@ -15,13 +15,14 @@ recorded command and attitude), so they are fitted and chosen independently.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
 from companion.config import Config
 from companion.diagnose.attitude import AttitudeProblem
 from companion.diagnose.channels import FlightData
-from companion.diagnose.flowmodel import IDX, NOMINAL, PARAMS, FlowProblem
+from companion.diagnose.flowmodel import AXIS_SIGN, IDX, NOMINAL, PARAMS, FlowProblem
 from companion.diagnose.select import Candidate, Group
 from companion.diagnose.sizes import threshold
 from companion.diagnose.wind import WindWindow, kernel_regressor, locate, null_pvalue
@@ -154,6 +155,10 @@ class FlowGroupState:
     def __init__(self, fp: FlowProblem) -> None:
         self.fp = fp
         self.window: WindWindow | None = None
+        #: rows per flow channel (the windows' frames after the whitening filter's start-up)
+        self.n_flow_rows = fp.flow.idx.size
+        #: the filter each flow channel's window rows go through (``ar_whitener``), per axis
+        self.whiten: list[Callable[[np.ndarray], np.ndarray]] = [lambda r: r, lambda r: r]
 
     @property
     def start_end(self) -> tuple[float, float]:
@@ -195,7 +200,7 @@ class FlowGroupState:
         q = p.copy()
         q[IDX["fx"]] = q[IDX["fy"]] = 0.0
         W = self.fp.force.idx
-        nf = self.fp.flow.idx.size
+        nf = self.n_flow_rows
         self.window = None
         cols = [np.zeros((nf, 2)), np.zeros((nf, 2)), np.zeros((len(W), 2)), np.zeros((len(W), 2))]
         if len(W) == 0:
@@ -228,7 +233,7 @@ class FlowGroupState:
         s, e = self.start_end
         if not (math.isfinite(s) and math.isfinite(e)):
             return None
-        nf = self.fp.flow.idx.shape[0] * self.fp.flow.idx.shape[1] if self.fp.flow.idx.size else 0
+        nf = self.n_flow_rows
         f0, f1 = self.fp.force.t_start_s, self.fp.force.t_end_s
         on = (f1 >= s - AROUND_WINDOW_S) & (f0 <= e + AROUND_WINDOW_S)
         none = np.zeros(nf, dtype=bool)
@@ -260,10 +265,14 @@ def _positive_drag(p: dict[str, float]) -> str | None:
 #: crossover of the rotation the flow is compared with: the attitude estimate below, the integrated
 #: gyro above (Hz)
 ROTATION_CROSSOVER_HZ = 1.0
+#: crossover of the rotation the effects' regressors are built from (``FlowProblem.anchor``): the
+#: gyro nearly everywhere, so that its noise is independent of the attitude noise in the residual
+REGRESSOR_CROSSOVER_HZ = 0.1
 
 
-def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0) -> tuple[np.ndarray, np.ndarray] | None:
-    """(pitch, roll) for the flow's rotation: the integrated gyro above ``ROTATION_CROSSOVER_HZ``
+def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0,
+                    crossover_hz: float = ROTATION_CROSSOVER_HZ) -> tuple[np.ndarray, np.ndarray] | None:
+    """(pitch, roll) for the flow's rotation: the integrated gyro above ``crossover_hz``
     and the attitude estimate below it (a complementary filter, zero phase: fused = G + LP(att - G)
     with G the gyro's integral per segment, so the two parts add up to the attitude wherever the
     two sources agree).
@@ -280,7 +289,7 @@ def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0) -> tuple[np.ndarr
     from scipy import signal as sg
 
     fs = 1.0 / data.frame_s
-    b, a = sg.butter(2, ROTATION_CROSSOVER_HZ / (0.5 * fs))
+    b, a = sg.butter(2, crossover_hz / (0.5 * fs))
     out = []
     for ang, gyr in ((data.pitch_rad, data.gyro_y_rad_s), (data.roll_rad, data.gyro_x_rad_s)):
         fused = np.array(ang, dtype=float)
@@ -295,6 +304,52 @@ def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0) -> tuple[np.ndarr
             fused[a0:b0] = G + sg.filtfilt(b, a, ang[a0:b0] - G)
         out.append(fused)
     return out[0], out[1]
+
+
+#: crossover of the velocity the effects' regressors are built from: the flow's odometry below,
+#: the velocity the recorded tilt gives above (``regressor_scene_angle``)
+VELOCITY_CROSSOVER_HZ = 0.2
+
+
+def regressor_scene_angle(base: FlowProblem, rotation: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """A scene angle (2, n) for the effects' regressors: the rotation ``rotation`` minus the
+    translation of a velocity that follows the flow's odometry (``base`` at the nominal geometry)
+    below ``VELOCITY_CROSSOVER_HZ`` and the integral of the tilt (of ``rotation``) above it (zero phase).
+
+    Why: every effect that scales the flow velocity (flow scale, range offset, and drag through
+    the velocity) has the flow velocity as its regressor in the force balance, and the measured
+    flow's noise (counts, quantization, rotation compensation) sits in both that regressor and the
+    residual: errors in variables, fitted as a scale below 1 or a positive range offset that
+    shrink the noise. Above the crossover the tilt gives the velocity's changes without the flow's
+    noise (and without the unexplained forces, turbulence among them, that the loop answers)."""
+    from scipy import signal as sg
+
+    data = base.data
+    X, _ = base.flow_velocity(NOMINAL)
+    fs = 1.0 / data.frame_s
+    b, a = sg.butter(2, VELOCITY_CROSSOVER_HZ / (0.5 * fs))
+    phi = np.zeros((2, data.n))
+    t = data.t_s
+    for a0, b0 in data.segments():
+        if b0 - a0 < 2:
+            continue
+        ts = t[a0:b0]
+        v = np.gradient(X[:, a0:b0], ts, axis=1)
+        if b0 - a0 >= 30:
+            # the tilt's velocity from ``rotation`` too: the recorded attitude's noise is in the
+            # residual's tilt term (errors in variables again)
+            acc = np.stack([AXIS_SIGN[i] * base.g * np.tan(rotation[i][a0:b0]) for i in (0, 1)])
+            vt = np.concatenate([np.zeros((2, 1)), np.cumsum(0.5 * (acc[:, 1:] + acc[:, :-1]) * np.diff(ts), axis=1)],
+                                axis=1)
+            v = vt + sg.filtfilt(b, a, v - vt, axis=1)
+        xf = np.concatenate([np.zeros((2, 1)), np.cumsum(0.5 * (v[:, 1:] + v[:, :-1]) * np.diff(ts), axis=1)],
+                            axis=1)
+        y = np.concatenate([np.zeros((2, 1)), np.cumsum(np.diff(xf, axis=1) / base._Amid[a0:b0 - 1], axis=1)],
+                           axis=1)
+        for i in (0, 1):
+            r = AXIS_SIGN[i] * (rotation[i][a0:b0] - rotation[i][a0])
+            phi[i, a0:b0] = r - y[i]
+    return phi
 
 
 #: a lever arm is told from a rotation gain only when 1/height varies by this much (coefficient of
@@ -324,6 +379,39 @@ def flow_body_angles(data: FlightData) -> tuple[np.ndarray, np.ndarray] | None:
             ang[a0:b0] = np.cumsum(np.concatenate([[0.0], inc[a0 + 1:b0]]))
         out.append(ang)
     return out[0], out[1]
+
+
+#: order of the autoregressive model of the flow channel's noise (``ar_whitener``)
+WHITEN_ORDER = 2
+
+
+def ar_whitener(e: np.ndarray, order: int = WHITEN_ORDER) -> Callable[[np.ndarray], np.ndarray]:
+    """A prediction-error filter for the rows of ``e`` (n_windows, L): an autoregressive model of
+    ``order`` fitted to the nominal residual within the windows, applied to any residual of the
+    same shape (the first ``order`` samples of each window are dropped).
+
+    Why: the flow residual is quantization (white) plus what the plant's tilt does not explain
+    of the translation: turbulence, a smooth, coloured process that the closed loop answers with
+    rotation, so it is correlated with every rotation regressor (a rotation gain, a lever arm).
+    Least squares on the whitened residual weighs each frequency by its noise (the prediction
+    error method, consistent in closed loop when the noise model is right), so coloured noise
+    neither dominates the fit nor reads as an effect."""
+    coef = np.zeros(order)
+    if e.size and e.shape[1] > order + 2:
+        y = e[:, order:].ravel()
+        X = np.stack([e[:, order - j - 1:e.shape[1] - j - 1].ravel() for j in range(order)], axis=1)
+        sol, *_ = np.linalg.lstsq(X, y, rcond=None)
+        roots = np.roots(np.concatenate([[1.0], -sol]))
+        if np.all(np.isfinite(sol)) and np.all(np.abs(roots) < 0.999):
+            coef = sol
+
+    def apply(r: np.ndarray) -> np.ndarray:
+        out = r[:, order:].copy()
+        for j in range(order):
+            out -= coef[j] * r[:, order - j - 1:r.shape[1] - j - 1]
+        return out
+
+    return apply
 
 
 def _force_noise(fp: FlowProblem) -> float:
@@ -366,15 +454,30 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0) -> tuple[
             data.notes.append(f"the flow's rotation from {sources[best][0]} (it explains the flow best: residual "
                               f"{noise[best]:.3g} rad and {force[best]:.3g} N against {noise[0]:.3g} rad and "
                               f"{force[0]:.3g} N from the attitude estimate)")
+    base = fp
+    # the effects' regressors from sources whose noise the residual does not share (``anchor``):
+    # the rotation from the gyro, the velocity from the tilt above a low crossover
+    regressor = rotation_angles(data, gyro_lag_s, REGRESSOR_CROSSOVER_HZ)
+    what = f"the gyro above {REGRESSOR_CROSSOVER_HZ:g} Hz"
+    if regressor is None:
+        regressor = (data.pitch_rad, data.roll_rad)
+        what = "the attitude estimate"
+    fp = FlowProblem(data, rotation_angles=regressor, scene_angle=regressor_scene_angle(base, regressor), **kw)
+    fp.anchor(base)
+    data.notes.append(f"the flow effects' regressors: rotation from {what}, velocity from the tilt above "
+                      f"{VELOCITY_CROSSOVER_HZ:g} Hz and the flow below (their noise is not the residual's)")
     state = FlowGroupState(fp)
+    e0 = base.flow_residual(NOMINAL)
+    whiten = state.whiten = [ar_whitener(e0[0]), ar_whitener(e0[1])]
+    state.n_flow_rows = fp.flow.idx.shape[0] * max(fp.flow.idx.shape[1] - WHITEN_ORDER, 0)
 
     def residuals(p: np.ndarray) -> list[np.ndarray]:
         s, e = state.start_end
         f = fp.flow_residual(p)
         r = fp.force_residual(p, s, e)
-        return [f[0].ravel(), f[1].ravel(), r[0], r[1]]
+        return [whiten[0](f[0]).ravel(), whiten[1](f[1]).ravel(), r[0], r[1]]
 
-    tf = data.t_s[fp.flow.idx].ravel() if len(fp.flow.idx) else np.zeros(0)
+    tf = data.t_s[fp.flow.idx[:, WHITEN_ORDER:]].ravel() if len(fp.flow.idx) else np.zeros(0)
     tw = 0.5 * (fp.force.t_start_s + fp.force.t_end_s)
     a_min = float(np.nanmin(data.range_m))
     # a rangefinder offset of half the lowest height is far beyond any mounting error: a fit that
