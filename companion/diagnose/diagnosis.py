@@ -22,7 +22,14 @@ from companion.diagnose.attitude import AttitudeProblem
 from companion.diagnose.channels import FlightData, extract
 from companion.diagnose.explain import explain
 from companion.diagnose.flowmodel import IDX, FlowProblem
-from companion.diagnose.groups import FlowGroupState, GyroProblem, attitude_group, flow_group, gyro_group
+from companion.diagnose.groups import (
+    FlowGroupState,
+    GyroProblem,
+    attitude_group,
+    flow_group,
+    gyro_group,
+    lever_arm_observable,
+)
 from companion.diagnose.locate import Interval, conditions, effect_windows, excess_windows
 from companion.diagnose.select import Comparison, Group, ModelScore, Selector, Settings
 from companion.diagnose.sparse import SparseFit, Term, sparse_fit
@@ -286,6 +293,12 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
             f = _finding(e, comp, res, data, cfg, cond)
             if comp.significant and e in ALIKE:
                 f.alternatives = _alternatives(e, res)
+                if e == "flow_rotation_gain" and not lever_arm_observable(data):
+                    # at one height a lever arm rz adds rz / h times the rotation: a gain of 1 + rz / h
+                    h = float(np.nanmean(data.range_m))
+                    f.alternatives.append({"effect": "flow_lever_arm",
+                                           "parameters": {"rz": (f.parameters["gain"] - 1.0) * h},
+                                           "cv_t": float(comp.cv_t)})
                 if f.alternatives:
                     others = " or ".join(f"{a['effect']} ({_fmt(a['parameters'])})" for a in f.alternatives)
                     f.explanation += (f" This flight cannot tell it from {others}: each predicts held-out data as "
