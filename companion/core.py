@@ -98,6 +98,10 @@ class HoldCause(enum.StrEnum):
     RANGE_STALE = "range stale"
     RANGE_INVALID = "range outside sensor limits"
     LINK = "link lost"
+    #: the live loop did not run (a stalled companion): what waited meanwhile was dropped, not flown
+    COMPANION_STALLED = "companion stalled"
+    #: flow frames arrived older than the live loop's age limit (a backlog upstream) and were dropped
+    BACKLOG = "backlog dropped"
     DISENGAGED = "vehicle not in the companion's mode"
     VELOCITY_JUMP = "velocity jump"
     FLOW_FROZEN = "flow frozen"
@@ -878,6 +882,10 @@ class CompanionCore:
         if not 0.0 <= dt < window:
             return False
         return all(a == b or (a != a and b != b) for a, b in zip(payload, prev, strict=True))
+
+    def is_repeat(self, f: FlowColumns) -> bool:
+        """Whether ``on_flow`` would take ``f`` as a repeat (and step nothing)."""
+        return self._is_repeat(f, self.payload(f))
 
     def on_flow(self, f: FlowColumns) -> StepOutput:
         """Run one control step on a flow frame (scalars). Always returns a finite command."""

@@ -13,11 +13,15 @@ and a serial device with its baud rate: ``/dev/ttyUSB0,921600`` (``COM3,57600`` 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import io
+import math
 import os
 import re
 import socket
+import struct
+import sys
 import threading
 import time
 import types
@@ -32,6 +36,7 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mav  # noqa: E402
 
 from companion.errors import LinkError, UsageError  # noqa: E402
+from companion.tlog_writer import SIM_CLOCK_TEXT  # noqa: E402
 
 #: ArduCopter's flight modes by custom_mode number (the ones a GCS names)
 COPTER_MODES = {0: "STABILIZE", 1: "ACRO", 2: "ALT_HOLD", 3: "AUTO", 4: "GUIDED", 5: "LOITER", 6: "RTL",
@@ -150,6 +155,7 @@ def open_connection(url: str, *, source_system: int, source_component: int) -> A
     finally:
         socket.setdefaulttimeout(previous)
     conn.mav.robust_parsing = True
+    enable_arrival_stamps(conn)
     if isinstance(conn, mavutil.mavtcp):
         # pymavlink prints "EOF on TCP socket" on every read once the peer has gone: note it instead
         conn.handle_eof = lambda: _note_closed(conn, "closed by the other end")
@@ -263,29 +269,154 @@ def is_datagram_link(conn: Any) -> bool:
 @dataclass(frozen=True)
 class Datagram:
     """What one UDP datagram held: its messages (BAD_DATA included, in order), the bytes of an
-    unfinished packet dropped at its end, and whether it was dropped unread as oversized."""
+    unfinished packet dropped at its end, whether it was dropped unread as oversized, and when
+    the kernel received it (UNIX time, s; None when the link does not say)."""
 
     messages: list[Any]
     partial_bytes: int = 0
     oversized: bool = False
+    arrival_unix_s: float | None = None
+
+
+#: Linux ``SO_TIMESTAMPNS`` (also the control message's type, ``SCM_TIMESTAMPNS``): the kernel
+#: stamps each datagram when it arrives (``CLOCK_REALTIME``, a ``struct timespec``)
+SO_TIMESTAMPNS = 35
+_TIMESPEC = struct.Struct("@qq")
+
+
+def enable_arrival_stamps(conn: Any) -> bool:
+    """Ask the kernel to stamp each datagram of a UDP connection on arrival (Linux), so that a
+    reader knows how long a datagram waited in the socket (a stalled reader's backlog). Returns
+    whether ``read_datagram`` will report arrival times for ``conn``."""
+    if not isinstance(conn, mavutil.mavudp) or not sys.platform.startswith("linux"):
+        return False
+    try:
+        conn.port.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    except OSError:
+        return False
+    conn.flowhold_arrival_stamps = True
+    return True
+
+
+def _recv_stamped(conn: Any) -> tuple[bytes, float | None]:
+    """``mavutil.mavudp.recv`` with the kernel's arrival stamp (UNIX time, s, or None)."""
+    try:
+        data, ancillary, _flags, addr = conn.port.recvmsg(mavutil.UDP_MAX_PACKET_LEN, socket.CMSG_SPACE(_TIMESPEC.size))
+    except OSError as e:
+        if e.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
+            return b"", None
+        raise
+    if conn.udp_server:  # as mavudp.recv keeps its peers
+        conn.clients.add(addr)
+        conn.clients_last_alive[addr] = time.time()
+    elif conn.broadcast:
+        conn.last_address = addr
+    stamp = None
+    for level, kind, payload in ancillary:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
+            sec, nsec = _TIMESPEC.unpack_from(payload)
+            stamp = sec + nsec * 1e-9
+    return data, stamp
 
 
 def read_datagram(conn: Any) -> Datagram | None:
     """Read one datagram from a UDP pymavlink connection (None when none is waiting). A
     datagram longer than ``MAX_DATAGRAM_IN`` is dropped unread. Messages are posted to the
-    connection as ``recv_msg`` does (its per-system state)."""
-    data = conn.recv()
+    connection as ``recv_msg`` does (its per-system state). The kernel's arrival stamp comes with
+    it when ``enable_arrival_stamps`` was granted."""
+    if getattr(conn, "flowhold_arrival_stamps", False):
+        data, stamp = _recv_stamped(conn)
+    else:
+        data, stamp = conn.recv(), None
     if not data:
         return None
     if len(data) > MAX_DATAGRAM_IN:
-        return Datagram([], oversized=True)
+        return Datagram([], oversized=True, arrival_unix_s=stamp)
     if conn.first_byte:
         conn.auto_mavlink_version(data)
     msgs = conn.mav.parse_buffer(data) or []
     dropped = discard_partial(conn.mav)
     for m in msgs:
         conn.post_message(m)
-    return Datagram(msgs, dropped)
+    return Datagram(msgs, dropped, arrival_unix_s=stamp)
+
+
+@dataclass
+class ClockMapping:
+    """The vehicle's clock seen from the companion's: how old a sample the vehicle stamped is.
+
+    The vehicle's time now is taken from the newest sample heard: its time, plus ``rate`` times
+    the local time since it arrived (``rate`` 1 for a vehicle on the wall clock; X for a simulator
+    at speed-up X; 0 for a lockstep simulator, whose clock stands until the companion answers).
+    The age of a sample is that minus its time. Extrapolating only from the newest sample keeps
+    the mapping free of the vehicle's clock rate and of the link's latency, both of which may
+    drift; what it measures is what matters: how long a sample waited before being used, in the
+    socket (``arrival_s``, the kernel's stamp where the link has one) and behind the newer samples
+    already heard.
+
+    A sample more than ``jump_s`` behind the newest (a vehicle reboot) or ahead of the vehicle's
+    time now (a clock that cannot have run so far) is a jump: taken only when the next sample
+    agrees with it (within ``jump_s``), so that one bogus time cannot make every frame look old.
+    Times are passed in (s); arrival times are on the companion's monotonic clock.
+    """
+
+    rate: float = 1.0
+    jump_s: float = 1.0
+    #: the newest vehicle time heard (s), and the local time it arrived
+    newest_s: float | None = None
+    arrival_s: float = math.nan
+    #: a jump waiting for a second sample to agree: (vehicle time, arrival)
+    candidate: tuple[float, float] | None = None
+
+    def observe(self, vehicle_s: float, arrival_s: float) -> None:
+        """A sample stamped ``vehicle_s`` by the vehicle arrived at local time ``arrival_s``."""
+        if not (math.isfinite(vehicle_s) and math.isfinite(arrival_s)):
+            return
+        now = self.vehicle_now_s(arrival_s)
+        if now is None:
+            self.newest_s, self.arrival_s = vehicle_s, arrival_s
+            return
+        assert self.newest_s is not None
+        if self.newest_s - self.jump_s <= vehicle_s <= now + self.jump_s:
+            self.candidate = None
+            if vehicle_s > self.newest_s:
+                self.newest_s, self.arrival_s = vehicle_s, arrival_s
+            return
+        if self.candidate is not None and abs(vehicle_s - self.candidate[0]) <= self.jump_s:
+            self.newest_s, self.arrival_s = vehicle_s, arrival_s  # two samples agree: the clock jumped
+            self.candidate = None
+        else:
+            self.candidate = (vehicle_s, arrival_s)
+
+    def vehicle_now_s(self, local_s: float) -> float | None:
+        """The vehicle's time at local time ``local_s`` (None before any sample)."""
+        if self.newest_s is None:
+            return None
+        return self.newest_s + self.rate * max(0.0, local_s - self.arrival_s)
+
+    def age_s(self, vehicle_s: float, local_s: float) -> float:
+        """How old, at local time ``local_s``, a sample stamped ``vehicle_s`` is (s, >= 0; 0 when
+        nothing is known, or for a time that is not a number)."""
+        now = self.vehicle_now_s(local_s)
+        if now is None or not math.isfinite(vehicle_s):
+            return 0.0
+        return max(0.0, now - vehicle_s)
+
+    def set_clock_text(self, text: str) -> bool:
+        """Take the rate from a simulator's clock notice ("simulated clock (lockstep)", "(speedup
+        x4)"); returns whether ``text`` was one."""
+        if SIM_CLOCK_TEXT not in text:
+            return False
+        if "lockstep" in text:
+            self.rate = 0.0
+        else:
+            m = re.search(r"speedup x([0-9.eE+-]+)", text)
+            try:
+                rate = float(m.group(1)) if m else 1.0
+            except ValueError:
+                rate = 1.0
+            self.rate = rate if math.isfinite(rate) and rate > 0.0 else 1.0
+        return True
 
 
 def is_vehicle_heartbeat(msg: Any) -> bool:

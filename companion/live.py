@@ -13,6 +13,12 @@ reproduces them frame for frame. What only a live loop needs lives here:
   PI integrator reset at each takeover and yaw held at its takeover value);
 - one control step per *new* flow frame (a frame whose time does not advance is a duplicate and
   is dropped; one more than 1 s older than the last is a vehicle reboot and restarts the clock);
+  a stall is not replayed: what waits on the link is read before it is handled, and a frame
+  more than ``MAX_FRAME_AGE_FRAMES`` frame periods old by the link's clock mapping
+  (``link.ClockMapping``: the newest sample heard, and the kernel's arrival stamps on UDP) is
+  dropped and counted, never stepped; when the loop itself stood still for more than
+  ``flow_timeout_s`` (the process stopped or starved) the hold is "companion stalled" and only
+  the newest frame waiting is flown, with the integrator as it was; the number dropped is said;
   each step publishes POSITION_TARGET_LOCAL_NED and VISION_SPEED_ESTIMATE (not while holding)
   and sends SET_ATTITUDE_TARGET (thrust 0.5) last, stamped with the flow frame's time;
 - setpoints: ``--setpoint VX,VY`` (constant), or a GCS's SET_POSITION_TARGET_LOCAL_NED to
@@ -77,6 +83,19 @@ TEXT_BURST = 20
 TEXT_RATE_HZ = 5.0
 #: the characters a STATUSTEXT carries
 STATUSTEXT_LEN = 50
+#: a flow frame older than this many frame periods by the link's clock mapping (``link.ClockMapping``)
+#: when its turn comes is dropped and counted, never stepped: a stall is not replayed (issue 18)
+MAX_FRAME_AGE_FRAMES = 2.0
+#: the vehicle's time resolution (time_usec), s: an age at the limit to within it is not over it
+AGE_SLACK_S = 1e-6
+#: a run of dropped frames at least this long (frame periods) is said (STATUSTEXT and console)
+#: even without a stall of the companion; shorter ones are only counted
+BACKLOG_SAY_FRAMES = 5
+#: the most messages read from the link in one go: what is waiting is read before any of it is
+#: handled, so that a frame is aged against the newer samples already behind it
+READ_AHEAD_MAX = 2000
+#: the attribute a message read from the link carries: its arrival on the companion's clock (s)
+ARRIVAL_ATTR = "flowhold_arrival_s"
 COMMAND_TRIES = 5
 STATUS_PERIOD_TTY_S = 0.25
 STATUS_PERIOD_LOG_S = 5.0
@@ -412,6 +431,9 @@ class LiveCompanion:
         self._ramp_said = False  # "GCS setpoints stopped" said for the current setpoint
         self.T = cfg.flow_sensor.frame_period_s
         self.tilt_limit = cfg.controller.tilt_limit_rad
+        #: the vehicle's clock seen from ours: how old each frame is when its turn comes
+        self.clockmap = link.ClockMapping(jump_s=REBOOT_JUMP_S)
+        self.max_frame_age_s = MAX_FRAME_AGE_FRAMES * self.T
         self.commander = Commander()
         self.monitor = HoldMonitor()
         self.texts = TextLimiter()
@@ -442,6 +464,15 @@ class LiveCompanion:
         self._next_heartbeat = -math.inf
         self._next_status = -math.inf
         self._next_wall_hold = -math.inf
+        self._loop_wall: float | None = None  # when the main loop last ran (its gaps are stalls)
+        #: since the last frame stepped: the longest stall of the loop (s), and the frames dropped
+        #: as too old (how many, and the oldest's age, s)
+        self._stall_gap_s = 0.0
+        self._drops = 0
+        self._drop_oldest_s = 0.0
+        #: while handling a stall's backlog: the one flow frame to resume from (the newest waiting)
+        self._catching_up = False
+        self._resume_frame: Any | None = None
         self._flow_times: deque[float] = deque(maxlen=50)
         self._link_lost_reported = False
         self._vehicle_heard_wall: float | None = None
@@ -509,7 +540,8 @@ class LiveCompanion:
             self._heartbeat(now)
             msg = self._recv()
             if msg is None:
-                self.conn.select(0.05)
+                if not self._pending:
+                    self.conn.select(0.05)
                 continue
             if link.is_vehicle_heartbeat(msg) and self.want_sysid in (None, msg.get_srcSystem()):
                 self.router.vehicle_sysid = msg.get_srcSystem()
@@ -570,22 +602,57 @@ class LiveCompanion:
         if why is not None:
             raise LinkError(f"the connection {self.url} was {why}")
 
-    def _next_message(self) -> Any | None:
-        if not self._datagrams:
-            return self.conn.recv_msg()
-        if not self._pending:
-            d = link.read_datagram(self.conn)
-            if d is not None:
+    def _read_ahead(self) -> None:
+        """Read what is waiting on the link (up to ``READ_AHEAD_MAX`` messages) into ``_pending``.
+
+        Each message carries its arrival on our clock (``ARRIVAL_ATTR``): the kernel's stamp on
+        UDP (how long it waited in the socket), the time of reading otherwise; the vehicle's
+        samples are shown to the clock mapping in arrival order, before any is handled, so that a
+        frame of a backlog is aged against the newest sample behind it."""
+        n = 0
+        while n < READ_AHEAD_MAX:
+            if self._datagrams:
+                d = link.read_datagram(self.conn)
+                if d is None:
+                    return
                 if d.oversized:
                     self.counters["oversized datagrams dropped"] += 1
                 if d.partial_bytes:
                     self.counters["bad packets"] += 1  # an unfinished packet at the end of a datagram
-                self._pending.extend(d.messages)
-        return self._pending.popleft() if self._pending else None
+                now = self.clock()  # read now, with the stamp: the process may be stopped anywhere
+                arrival = now if d.arrival_unix_s is None else now - max(0.0, self.wall() - d.arrival_unix_s)
+                batch = d.messages
+            else:
+                m = self.conn.recv_msg()
+                if m is None:
+                    return
+                arrival, batch = self.clock(), [m]
+            for m in batch:
+                if m.get_type() != "BAD_DATA":
+                    setattr(m, ARRIVAL_ATTR, arrival)
+                    self._observe(m, arrival)
+                self._pending.append(m)
+            n += max(1, len(batch))
+
+    def _observe(self, msg: Any, arrival_s: float) -> None:
+        """Show the clock mapping a vehicle sample's time (its own clock: ``time_boot_ms``, a gyro's
+        ``time_usec``, the flow frame's time in the profile's unit)."""
+        try:
+            if not self._from_vehicle(msg):
+                return
+            t = vehicle_time_s(msg)
+            if t is None and self.profile_known and msg.get_type() == FLOW_MESSAGE[self.profile]:
+                t = scalar_flow(msg, self.profile, self.cfg.flow_sensor.q_rad_per_count).time_s
+            if t is not None:
+                self.clockmap.observe(float(t), arrival_s)
+        except Exception:  # noqa: BLE001 - a time that cannot be read is no evidence (the handler will say)
+            return
 
     def _recv(self) -> Any | None:
         try:
-            msg = self._next_message()
+            if not self._pending:
+                self._read_ahead()
+            msg = self._pending.popleft() if self._pending else None
         except Exception:  # noqa: BLE001 - garbage on the wire: drop it, go on
             self.counters["unreadable input"] += 1
             return None
@@ -608,11 +675,18 @@ class LiveCompanion:
     def _on_message(self, msg: Any, now: float) -> None:
         mtype = msg.get_type()
         vehicle = self._from_vehicle(msg)
+        arrival = getattr(msg, ARRIVAL_ATTR, None)
+        if arrival is None:  # handed in directly, not read by ``_read_ahead``: it arrives now
+            arrival = now
+            self._observe(msg, now)
         if vehicle:
-            self.last_vehicle_wall = now
+            self.last_vehicle_wall = max(self.last_vehicle_wall, min(arrival, now))
             if not self.profile_known:
                 self._detect(msg)
-        if mtype == "HEARTBEAT":
+        if mtype == "STATUSTEXT":
+            if vehicle:  # a simulator's clock notice: the rate of the vehicle's clock (lockstep: 0)
+                self.clockmap.set_clock_text(str(msg.text))
+        elif mtype == "HEARTBEAT":
             if vehicle:
                 self.last_heartbeat_wall = now
                 self.armed = link.heartbeat_armed(msg)
@@ -705,6 +779,11 @@ class LiveCompanion:
                 self.counters["vehicle reboots"] += 1
                 self.core.plausible.reset()
                 self.out(f"flowhold: the vehicle's clock restarted ({self.last_flow_time_s:.3f} s -> {t:.3f} s)")
+        age = self.clockmap.age_s(t, now)
+        behind = self._catching_up and msg is not self._resume_frame  # a stall's backlog: only the newest flies
+        if (behind or age > self.max_frame_age_s + AGE_SLACK_S) and not self.core.is_repeat(f):
+            self._drop_frame(t, age)  # a stall is not replayed: never stepped, never commanded
+            return
         self.core.set_setpoint(*self._effective_setpoint(now))
         out = self.core.on_flow(f)  # the frame parsed above (only the vehicle's flow comes here)
         if out.repeat:  # the same flow sample again (ArduPilot streams faster than the sensor)
@@ -730,7 +809,36 @@ class LiveCompanion:
         self.last_vehicle_cmd_wall = now
         self._command(out.time_s, out.roll_cmd_rad, out.pitch_cmd_rad, out.vx_set_m_s, out.vy_set_m_s, now,
                       estimate=None if self.last_held else (out.vx_m_s, out.vy_m_s))
+        self._say_backlog()
         self._report(out.hold_cause)
+
+    def _drop_frame(self, t: float, age_s: float) -> None:
+        """A flow frame too old to fly on: counted, and its time noted (the flow is not stale,
+        the frame is late), but not stepped: the integrator is not charged for a stall."""
+        self.counters["flow frames dropped (too old)"] += 1
+        self._drops += 1
+        self._drop_oldest_s = max(self._drop_oldest_s, age_s)
+        if math.isfinite(t):
+            self.last_flow_time_s = t
+            self.flow_ref_s = t
+            self.vehicle_time_s = t
+
+    def _say_backlog(self) -> None:
+        """At the first frame stepped after a stall or a run of dropped frames: say how many were
+        dropped (STATUSTEXT WARNING and console); a few late frames are only counted."""
+        n, oldest, gap = self._drops, self._drop_oldest_s, self._stall_gap_s
+        self._drops, self._drop_oldest_s, self._stall_gap_s = 0, 0.0, 0.0
+        if not gap and n < BACKLOG_SAY_FRAMES:
+            return
+        resumed = "resumed from the newest frame, integrator as it was"
+        if gap:
+            console = (f"flowhold: companion stalled for {gap:.2f} s (this process did not run): dropped {n} "
+                       f"backlog frames (the oldest {oldest:.2f} s old); {resumed}")
+        else:
+            console = (f"flowhold: dropped {n} flow frames older than {self.max_frame_age_s * 1e3:.0f} ms "
+                       f"(a backlog on the link, the oldest {oldest:.2f} s old); {resumed}")
+        self._statustext(f"flowhold: backlog dropped: {n} frames ({oldest:.1f} s)", mav.MAV_SEVERITY_WARNING,
+                         console=console)
 
     def _on_gyro_time(self, t_s: float, now: float) -> None:
         """Flow staleness on the vehicle's own clock: the gyro's time runs on, the flow's does not."""
@@ -738,8 +846,8 @@ class LiveCompanion:
             self.flow_ref_s = None  # reboot (or a bogus time): measure again from the next sample
         self.last_gyro_time_s = t_s
         self.vehicle_time_s = t_s
-        if not self.in_control:
-            return
+        if not self.in_control or self.clockmap.age_s(t_s, now) > self.max_frame_age_s + AGE_SLACK_S:
+            return  # (a sample of a backlog commands nothing)
         if self.flow_ref_s is None or t_s < self.flow_ref_s - REBOOT_JUMP_S:
             self.flow_ref_s = t_s
         # one level command per frame period of vehicle time (the gyro may stream faster than the flow)
@@ -813,7 +921,14 @@ class LiveCompanion:
             # the wall clock commands only while the vehicle's clock is silent: one clock at a time,
             # one level command per frame period (issue 18: both fired, ~100 Hz)
             self._next_wall_hold = max(self._next_wall_hold + self.T, now - self.T)  # frame rate, no burst
-            cause = HoldCause.LINK if now - self.last_vehicle_wall > timeout else HoldCause.FLOW_STALE
+            if now - self.last_vehicle_wall > timeout:
+                cause = HoldCause.LINK
+            elif self._stall_gap_s:  # the companion itself stood still, and no fresh frame since
+                cause = HoldCause.COMPANION_STALLED
+            elif self._drops:  # frames come, but too old to fly on
+                cause = HoldCause.BACKLOG
+            else:
+                cause = HoldCause.FLOW_STALE
             self.counters[f"holds: {cause.value} (wall clock)"] += 1
             # stamped with the vehicle's latest sensor time: a lockstep vehicle waiting on that frame takes
             # it, one that has moved on (its frames arrive whole, flow with gyro) ignores it as stale
@@ -857,6 +972,10 @@ class LiveCompanion:
         """Run until ``duration_s`` seconds of control (wall clock) or ``stop_requested``."""
         while not self.stop_requested:
             now = self.clock()
+            if self._loop_wall is not None and now - self._loop_wall > self.cfg.companion.flow_timeout_s:
+                self._on_stall(now - self._loop_wall, now)
+                now = self.clock()
+            self._loop_wall = now
             self._heartbeat(now)
             self._poll_texts(now)
             self.commander.poll(now, self._send_command)
@@ -868,16 +987,44 @@ class LiveCompanion:
                 return
             msg = self._recv()
             if msg is None:
-                self._check_open()
-                self.conn.select(min(self.T / 2, 0.01))
+                if not self._pending:  # (a bad packet read ahead: the next one is already here)
+                    self._check_open()
+                    self.conn.select(min(self.T / 2, 0.01))
                 continue
-            try:
-                self._on_message(msg, self.clock())
-            except Exception as exc:  # noqa: BLE001 - one bad message must not stop the loop
-                key = f"unhandled {msg.get_type()}: {type(exc).__name__}"
-                if self.counters[key] == 0:
-                    print(f"flowhold: dropped a message ({key}: {exc})", file=sys.stderr, flush=True)
-                self.counters[key] += 1
+            self._handle(msg)
+
+    def _handle(self, msg: Any) -> None:
+        try:
+            self._on_message(msg, self.clock())
+        except Exception as exc:  # noqa: BLE001 - one bad message must not stop the loop
+            key = f"unhandled {msg.get_type()}: {type(exc).__name__}"
+            if self.counters[key] == 0:
+                print(f"flowhold: dropped a message ({key}: {exc})", file=sys.stderr, flush=True)
+            self.counters[key] += 1
+
+    def _on_stall(self, gap_s: float, now: float) -> None:
+        """The loop did not run for ``gap_s`` (> ``flow_timeout_s``): the process was stopped,
+        starved or swapped out. Name the hold (not "link lost": the link may well be fine), then
+        handle at once everything that waited, before the wall-clock failsafe would act: every
+        flow frame but the newest is dropped (as is the newest if it is too old), so control
+        resumes from the newest frame with the integrator as it was before the stall."""
+        self.counters["companion stalls"] += 1
+        self._stall_gap_s = max(self._stall_gap_s, gap_s)
+        if self.in_control:
+            self._report(HoldCause.COMPANION_STALLED)
+        self._read_ahead()
+        flow = FLOW_MESSAGE[self.profile]
+        frames = [m for m in self._pending if m.get_type() == flow and self._from_vehicle(m)]
+        self._resume_frame = frames[-1] if frames else None
+        self._catching_up = True
+        try:
+            for _ in range(len(self._pending)):
+                msg = self._recv()
+                if msg is not None:
+                    self._handle(msg)
+        finally:
+            self._catching_up = False
+            self._resume_frame = None
 
     def close(self) -> None:
         if self._tty and not self.quiet:

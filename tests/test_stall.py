@@ -1,0 +1,238 @@
+"""Issue 18 (b) in process: the link's clock mapping, a stalled companion's backlog dropped (not
+replayed), a backlog on the link dropped by age. Times are passed in (a
+fake clock), so every number is exact; ``tests/test_stall_e2e.py`` does the same with real
+processes, SIGSTOP and UDP.
+
+The harness is the live loop itself (``LiveCompanion.run``) on a fake link that hands it the
+reference simulator's frames, one per frame period of the fake clock, and advances the simulator
+with the companion's last command, as the vehicle would.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Any
+
+import pytest
+
+from companion import link, outbound
+from companion.config import load_config
+from companion.controller import pi_step
+from companion.link import ClockMapping
+from companion.live import BACKLOG_SAY_FRAMES, MAX_FRAME_AGE_FRAMES, LiveCompanion
+from companion.profiles import Profile
+from simvehicle import telemetry
+from simvehicle.sim import Simulator
+
+mav = link.mav
+CFG = load_config()
+T_S = CFG.flow_sensor.frame_period_s
+WIND_N = 2.0
+
+# ---------------------------------------------------------------------------------------------
+# The clock mapping alone
+
+
+def test_age_is_the_time_behind_the_newest_sample_plus_the_time_since_it_arrived():
+    m = ClockMapping()
+    assert m.age_s(5.0, 100.0) == 0.0  # nothing heard: nothing is known to be old
+    for k in range(50):  # a vehicle on the wall clock, heard 5 ms after each frame
+        m.observe(5.0 + k * T_S, 100.0 + k * T_S + 0.005)
+    last = 5.0 + 49 * T_S
+    arrived = 100.0 + 49 * T_S + 0.005
+    assert m.age_s(last, arrived) == 0.0
+    assert m.age_s(last, arrived + 0.012) == pytest.approx(0.012)
+    assert m.age_s(last - 2.0, arrived) == pytest.approx(2.0)  # a frame of a 2 s backlog
+    # the newest sample itself waited 2 s (a stalled reader whose socket lost the newer ones)
+    assert m.age_s(last, arrived + 2.0) == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("text,rate", [
+    ("simvehicle: simulated clock (lockstep)", 0.0),
+    ("simvehicle: simulated clock (speedup x4)", 4.0),
+    ("simvehicle: simulated clock (speedup x0.5)", 0.5),
+    ("simvehicle: simulated clock (speedup xnan)", 1.0),
+])
+def test_the_rate_comes_from_the_simulators_clock_notice(text, rate):
+    m = ClockMapping()
+    assert m.set_clock_text(text)
+    assert m.rate == rate
+    m.observe(3.0, 50.0)
+    # a lockstep vehicle's clock stands while it waits for the companion: the newest frame is not
+    # old however long ago it came; at speed-up X its clock ran X times the local time
+    assert m.age_s(3.0, 50.5) == pytest.approx(0.5 * rate)
+    assert not ClockMapping().set_clock_text("PreArm: RC not calibrated")
+
+
+def test_one_bogus_time_cannot_make_every_frame_old_but_a_reboot_is_taken():
+    m = ClockMapping(jump_s=1.0)
+    m.observe(10.0, 100.0)
+    m.observe(9.2e12, 100.001)  # OPTICAL_FLOW time_usec 2**63: a jump no clock can make
+    m.observe(10.02, 100.02)
+    assert m.newest_s == 10.02 and m.age_s(10.02, 100.02) == 0.0
+    m.observe(0.0, 100.03)  # a reboot: every time field restarts at 0 ...
+    assert m.newest_s == 10.02
+    m.observe(0.0, 100.031)  # ... and the next sample agrees
+    assert m.newest_s == 0.0 and m.age_s(0.0, 100.031) == 0.0
+    m.observe(math.nan, 100.04)
+    assert m.newest_s == 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# The live loop on a fake link
+
+
+class FakeLink:
+    """A non-UDP pymavlink connection (read by ``recv_msg``, so a message's arrival is when it is
+    read) driven by a fake clock: ``select`` is where time passes. Each frame period the vehicle
+    (the reference simulator in a 2 N wind on each axis) sends its frame; ``stall(s)`` stops the
+    companion for ``s`` seconds while the vehicle flies on level (its GUID_TIMEOUT) and queues
+    its frames; ``burst(n)`` holds ``n`` frames upstream and delivers them at once."""
+
+    def __init__(self, quality: int | None = None) -> None:
+        self.clock = 100.0
+        self.mav = mav.MAVLink(None, srcSystem=1, srcComponent=outbound.COMPANION_COMPONENT)
+        self.veh = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.sim = Simulator(CFG, external_force=lambda _t: (-WIND_N, WIND_N))
+        self.inbox: deque[Any] = deque()
+        self.written: list[Any] = []  # (clock, message) the companion sent
+        self.cmd = (0.0, 0.0)
+        self.live: LiveCompanion | None = None
+        self.frames_left = 0
+        self.quality = quality
+        self._parser = mav.MAVLink(None)
+
+    def _decode(self, msg: Any) -> Any:
+        return mav.MAVLink(None).decode(bytearray(msg.pack(self.veh)))
+
+    def send_frame(self) -> None:
+        s = self.sim.current
+        rf = CFG.rangefinder
+        msgs = telemetry.frame_messages(self.veh, s, Profile.PAPER, CFG.flow_sensor.q_rad_per_count, T_S,
+                                        rf.min_m, rf.max_m)
+        if self.quality is not None:
+            msgs[2].quality = self.quality  # (gyro, range, then the flow)
+        if self.sim.frame % 25 == 0:
+            msgs.insert(0, telemetry.heartbeat(self.veh, armed=True))
+        self.inbox.extend(self._decode(m) for m in msgs)
+
+    def advance(self, cmd: tuple[float, float]) -> None:
+        self.sim.advance(*cmd)
+        self.clock += T_S
+        self.send_frame()
+
+    # what LiveCompanion uses of a connection
+    def recv_msg(self) -> Any | None:
+        return self.inbox.popleft() if self.inbox else None
+
+    def write(self, buf: bytes) -> None:
+        for m in self._parser.parse_buffer(buf) or []:
+            self.written.append((self.clock, m))
+            if m.get_type() == "SET_ATTITUDE_TARGET":
+                self.cmd = outbound.quaternion_to_euler(m.q)[:2]
+
+    def select(self, _timeout: float) -> None:
+        """Nothing waiting: the next frame period passes (the vehicle flies the last command)."""
+        assert self.live is not None
+        if self.frames_left <= 0:
+            self.live.stop_requested = True
+            return
+        self.frames_left -= 1
+        self.advance(self.cmd)
+
+    def close(self) -> None:
+        pass
+
+    def fly(self, n: int) -> None:
+        assert self.live is not None
+        self.frames_left = n
+        self.live.stop_requested = False
+        self.live.run()
+
+    def stall(self, seconds: float) -> None:
+        """The companion stops; the vehicle sends a frame each period and flies level."""
+        for _ in range(int(round(seconds / T_S))):
+            self.advance((0.0, 0.0))
+
+    def commands(self, since: int = 0) -> list[tuple[float, Any]]:
+        return [(t, m) for t, m in self.written[since:] if m.get_type() == "SET_ATTITUDE_TARGET"]
+
+    def texts(self, since: int = 0) -> list[tuple[str, int]]:
+        return [(m.text, m.severity) for _t, m in self.written[since:] if m.get_type() == "STATUSTEXT"]
+
+
+@pytest.fixture
+def flying():
+    """A companion in control for 3 s of the fake link, leaning into the wind."""
+    fl = FakeLink()
+    console: list[str] = []
+    live = LiveCompanion(CFG, Profile.PAPER, fl, clock=lambda: fl.clock, wall=lambda: 1.7e9 + fl.clock,
+                         out=console.append, quiet=True)
+    live.router.vehicle_sysid, live.vehicle_compid = 1, 1
+    fl.live = live
+    fl.send_frame()
+    fl.fly(150)
+    assert live.in_control and live.counters["steps"] >= 140
+    return fl, live, console
+
+
+def test_a_stall_is_not_replayed(flying):
+    fl, live, console = flying
+    pi_before = live.core.pi.state
+    n_sent, n_steps, n_said = len(fl.written), live.counters["steps"], len(console)
+    fl.stall(2.0)  # 100 frames wait
+    newest_ms = round(fl.sim.t_s * 1e3)
+    fl.fly(0)  # the companion runs again: one loop pass over what waited
+    resumed = fl.commands(n_sent)
+    # one command, from the newest frame; 99 frames dropped, none stepped
+    assert [m.time_boot_ms for _t, m in resumed] == [newest_ms]
+    assert live.counters["steps"] == n_steps + 1
+    assert live.counters["flow frames dropped (too old)"] == 99
+    # the integrator took that one step (Table VI's PI, here at its limit: conditional integration)
+    # and nothing of the stall
+    out = live.last_step
+    assert out is not None and not out.holding and out.dt_s == T_S
+    e_x, e_y = out.vx_set_m_s - out.vx_m_s, out.vy_set_m_s - out.vy_m_s
+    c = CFG.controller
+    expected, roll, pitch = pi_step(pi_before, e_x, e_y, T_S, kp_rad_per_m_s=c.kp_rad_per_m_s,
+                                    ki_rad_per_m=c.ki_rad_per_m, limit_rad=c.tilt_limit_rad)
+    assert live.core.pi.state == expected and (out.roll_cmd_rad, out.pitch_cmd_rad) == (roll, pitch)
+    assert abs(e_x) > 1.0  # the vehicle did drift during the stall: integrating it would have counted
+    texts = fl.texts(n_sent)
+    assert texts == [("flowhold: HOLD companion stalled", mav.MAV_SEVERITY_WARNING),
+                     ("flowhold: backlog dropped: 99 frames (2.0 s)", mav.MAV_SEVERITY_WARNING),
+                     ("flowhold: resumed", mav.MAV_SEVERITY_NOTICE)]
+    said = console[n_said:]
+    assert said[0] == "flowhold: HOLD companion stalled"
+    assert said[1].startswith("flowhold: companion stalled for 2.00 s (this process did not run): dropped 99 "
+                              "backlog frames"), said
+    assert not [c for c in said if "link lost" in c]
+    # and it flies on, one command per frame
+    fl.fly(10)
+    assert len(fl.commands(n_sent)) == 11
+
+
+def test_a_backlog_on_the_link_is_dropped_by_age(flying):
+    """Ten frames held upstream (a router that stalled) come at once: the companion was never
+    stopped, so no stall is named; the frames more than two frame periods behind the newest are
+    dropped (7), the rest flown, and the drop is said."""
+    fl, live, console = flying
+    n_sent = len(fl.written)
+    held = []
+    for _ in range(10):
+        fl.advance(fl.cmd)
+        held.extend(fl.inbox)
+        fl.inbox.clear()
+        fl.clock -= T_S  # (the companion's clock does not run meanwhile: no stall of its own)
+    fl.inbox.extend(held)
+    newest_ms = round(fl.sim.t_s * 1e3)
+    fl.fly(0)
+    flown = [m.time_boot_ms for _t, m in fl.commands(n_sent)]
+    n_ok = int(MAX_FRAME_AGE_FRAMES) + 1  # ages 0, T, 2T
+    assert flown == [newest_ms - round(1e3 * T_S * k) for k in reversed(range(n_ok))]
+    assert live.counters["flow frames dropped (too old)"] == 10 - n_ok
+    assert 10 - n_ok >= BACKLOG_SAY_FRAMES
+    assert fl.texts(n_sent) == [("flowhold: backlog dropped: 7 frames (0.2 s)", mav.MAV_SEVERITY_WARNING)]
+    assert any("dropped 7 flow frames older than 40 ms (a backlog on the link" in c for c in console)
+    assert live.counters["companion stalls"] == 0
