@@ -168,12 +168,14 @@ def test_the_stall_is_named_and_the_dropped_frames_counted(stalled):
     texts = [str(s) for s in crec.table("STATUSTEXT").from_sender(compid=191)["text"]]
     assert "flowhold: HOLD companion stalled" in texts, texts
     assert not [s for s in texts if "link lost" in s], texts
+    # (a loaded machine may starve the companion for a moment too: such a stall is said as well,
+    # and the 2 s one is the longest)
     said = [re.search(r"backlog dropped: (\d+) frames", s) for s in texts]
-    counts = [int(m.group(1)) for m in said if m]
-    assert len(counts) == 1, texts
+    n = max(int(m.group(1)) for m in said if m)
     frames = gap_s / T_S  # frames the vehicle sent while the companion stood still
-    assert 0.8 * frames <= counts[0] <= frames + 2, (counts, frames)
-    console = re.search(r"companion stalled for ([\d.]+) s.*dropped (\d+) backlog frames", text)
-    assert console is not None, text[-2000:]
-    assert float(console.group(1)) == pytest.approx(gap_s, abs=0.1)
-    assert int(console.group(2)) == counts[0]
+    assert 0.8 * frames <= n <= frames + 2, (n, frames, texts)
+    console = re.findall(r"companion stalled for ([\d.]+) s .*: dropped (\d+) backlog frames", text)
+    assert console, text[-2000:]
+    stall_s, dropped = max((float(a), int(b)) for a, b in console)
+    assert stall_s == pytest.approx(gap_s, abs=0.1)
+    assert dropped == n
