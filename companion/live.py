@@ -35,8 +35,9 @@ reproduces them frame for frame. What only a live loop needs lives here:
   going out at the frame rate; across frames (``core.Plausibility``), a velocity estimate that jumps
   further than the vehicle can accelerate (a one-frame outlier: held, not flown), and flow or
   gyro values stuck while the vehicle turns;
-- announcements: taking and releasing control (NOTICE), holds (WARNING) and "resumed" (NOTICE)
-  go to the ground station as STATUSTEXT from component 191, rate limited (``TextLimiter``) so a
+- announcements: taking and releasing control (NOTICE), holds (WARNING), a hold episode lasting
+  over ``LONG_HOLD_S`` once more at CRITICAL (the pilot's cue: level is not hover), the GCS's
+  setpoints stopping, backlog frames dropped (WARNING) and "resumed" (NOTICE) go to the ground station as STATUSTEXT from component 191, rate limited (``TextLimiter``) so a
   flapping cause cannot flood the link, and to the console;
 - no command leaves that is not finite and inside the tilt limit; a message that cannot be
   handled is counted and dropped, never fatal; on UDP each datagram is parsed on its own;
@@ -94,6 +95,8 @@ BACKLOG_SAY_FRAMES = 5
 #: the most messages read from the link in one go: what is waiting is read before any of it is
 #: handled, so that a frame is aged against the newer samples already behind it
 READ_AHEAD_MAX = 2000
+#: a hold lasting longer than this (wall clock, s) is said once more, at CRITICAL: the pilot's cue
+LONG_HOLD_S = 1.0
 #: the attribute a message read from the link carries: its arrival on the companion's clock (s)
 ARRIVAL_ATTR = "flowhold_arrival_s"
 COMMAND_TRIES = 5
@@ -157,23 +160,40 @@ def safe_attitude(roll_rad: float, pitch_rad: float, limit_rad: float) -> tuple[
 
 
 class HoldMonitor:
-    """Turns the hold cause of each step into STATUSTEXTs: one per change of cause."""
+    """Turns the hold cause of each step into STATUSTEXTs: one per change of cause; and tells
+    when a hold episode (from its first cause to "resumed", whatever the causes between) has
+    lasted long enough to be said again (``long_hold``). Times passed in (s)."""
 
     def __init__(self) -> None:
         self.cause: HoldCause = HoldCause.NONE
         self.episodes = 0
+        #: when the current hold episode began (None while not holding, or when not told)
+        self.since_s: float | None = None
+        self._long_said = False
 
-    def update(self, cause: HoldCause) -> tuple[str, int] | None:
-        """(text, severity) to send, or None when nothing changed."""
+    def update(self, cause: HoldCause, now_s: float | None = None) -> tuple[str, int] | None:
+        """(text, severity) to send, or None when nothing changed. ``now_s``: when the cause
+        began (a new episode starts then)."""
         if cause == self.cause:
             return None
         was_holding = self.cause is not HoldCause.NONE
         self.cause = cause
         if cause is HoldCause.NONE:
+            self.since_s = None
             return "flowhold: resumed", mav.MAV_SEVERITY_NOTICE
         if not was_holding:
             self.episodes += 1
+            self.since_s = now_s
+            self._long_said = False
         return f"flowhold: HOLD {cause.value}", mav.MAV_SEVERITY_WARNING
+
+    def long_hold(self, now_s: float, after_s: float) -> bool:
+        """True once per episode, when the hold has lasted more than ``after_s``."""
+        if self.cause is HoldCause.NONE or self.since_s is None or self._long_said \
+                or now_s - self.since_s <= after_s:
+            return False
+        self._long_said = True
+        return True
 
 
 def vehicle_time_s(msg: Any) -> float | None:
@@ -810,7 +830,7 @@ class LiveCompanion:
         self._command(out.time_s, out.roll_cmd_rad, out.pitch_cmd_rad, out.vx_set_m_s, out.vy_set_m_s, now,
                       estimate=None if self.last_held else (out.vx_m_s, out.vy_m_s))
         self._say_backlog()
-        self._report(out.hold_cause)
+        self._report(out.hold_cause, now)
 
     def _drop_frame(self, t: float, age_s: float) -> None:
         """A flow frame too old to fly on: counted, and its time noted (the flow is not stale,
@@ -858,7 +878,7 @@ class LiveCompanion:
             self.counters["holds: flow stale (vehicle time)"] += 1
             sp = self._effective_setpoint(now)
             self._command(t_s, 0.0, 0.0, sp[0], sp[1], now, estimate=None)
-            self._report(HoldCause.FLOW_STALE)
+            self._report(HoldCause.FLOW_STALE, now)
 
     def _command(self, time_s: float, roll: float, pitch: float, vx_set: float, vy_set: float, now: float, *,
                  estimate: tuple[float, float] | None) -> None:
@@ -880,8 +900,8 @@ class LiveCompanion:
         self.last_cmd_rad = (roll, pitch)
         self.counters["commands"] += 1
 
-    def _report(self, cause: HoldCause) -> None:
-        said = self.monitor.update(cause)
+    def _report(self, cause: HoldCause, now: float) -> None:
+        said = self.monitor.update(cause, now)
         if said is not None:
             self._statustext(*said)
 
@@ -935,7 +955,12 @@ class LiveCompanion:
             stamp = self.vehicle_time_s if self.vehicle_time_s is not None else 0.0
             sp = self._effective_setpoint(now)
             self._command(stamp, 0.0, 0.0, sp[0], sp[1], now, estimate=None)
-            self._report(cause)
+            self._report(cause, now)
+        if self.monitor.long_hold(now, LONG_HOLD_S):  # issue 18: the pilot's cue
+            self._statustext(f"flowhold: HOLD for {LONG_HOLD_S:g} s, drifting: switch mode", mav.MAV_SEVERITY_CRITICAL,
+                             console=f"flowhold: holding level for {LONG_HOLD_S:.1f} s ({self.monitor.cause.value}): "
+                                     "level is not hover, the vehicle drifts with the wind: switch mode "
+                                     "(LAND, ALT_HOLD)")
 
     def status_line(self, now: float) -> str:
         s = self.last_step
@@ -1011,7 +1036,7 @@ class LiveCompanion:
         self.counters["companion stalls"] += 1
         self._stall_gap_s = max(self._stall_gap_s, gap_s)
         if self.in_control:
-            self._report(HoldCause.COMPANION_STALLED)
+            self._report(HoldCause.COMPANION_STALLED, now - gap_s)
         self._read_ahead()
         flow = FLOW_MESSAGE[self.profile]
         frames = [m for m in self._pending if m.get_type() == flow and self._from_vehicle(m)]

@@ -1,5 +1,5 @@
-"""Issue 18 (b) in process: the link's clock mapping, a stalled companion's backlog dropped (not
-replayed), a backlog on the link dropped by age. Times are passed in (a
+"""Issue 18 (b, d) in process: the link's clock mapping, a stalled companion's backlog dropped (not
+replayed), a backlog on the link dropped by age, and the long-hold cue. Times are passed in (a
 fake clock), so every number is exact; ``tests/test_stall_e2e.py`` does the same with real
 processes, SIGSTOP and UDP.
 
@@ -19,8 +19,9 @@ import pytest
 from companion import link, outbound
 from companion.config import load_config
 from companion.controller import pi_step
+from companion.core import HoldCause
 from companion.link import ClockMapping
-from companion.live import BACKLOG_SAY_FRAMES, MAX_FRAME_AGE_FRAMES, LiveCompanion
+from companion.live import BACKLOG_SAY_FRAMES, LONG_HOLD_S, MAX_FRAME_AGE_FRAMES, HoldMonitor, LiveCompanion
 from companion.profiles import Profile
 from simvehicle import telemetry
 from simvehicle.sim import Simulator
@@ -77,6 +78,20 @@ def test_one_bogus_time_cannot_make_every_frame_old_but_a_reboot_is_taken():
     assert m.newest_s == 0.0 and m.age_s(0.0, 100.031) == 0.0
     m.observe(math.nan, 100.04)
     assert m.newest_s == 0.0
+
+
+def test_a_hold_episode_is_said_again_once_after_a_second():
+    mon = HoldMonitor()
+    assert mon.update(HoldCause.FLOW_STALE, 10.0)[0] == "flowhold: HOLD flow stale"
+    assert not mon.long_hold(10.0 + LONG_HOLD_S, LONG_HOLD_S)  # not *over* a second yet
+    mon.update(HoldCause.LINK, 10.5)  # the cause changes: the same episode
+    assert mon.long_hold(10.0 + LONG_HOLD_S + 0.01, LONG_HOLD_S)
+    assert not mon.long_hold(13.0, LONG_HOLD_S)  # once
+    mon.update(HoldCause.NONE, 13.1)
+    assert not mon.long_hold(20.0, LONG_HOLD_S)
+    mon.update(HoldCause.FLOW_QUALITY, 20.0)
+    assert mon.long_hold(21.5, LONG_HOLD_S)  # a new episode, said again
+    assert mon.episodes == 2
 
 
 # ---------------------------------------------------------------------------------------------
@@ -236,3 +251,25 @@ def test_a_backlog_on_the_link_is_dropped_by_age(flying):
     assert fl.texts(n_sent) == [("flowhold: backlog dropped: 7 frames (0.2 s)", mav.MAV_SEVERITY_WARNING)]
     assert any("dropped 7 flow frames older than 40 ms (a backlog on the link" in c for c in console)
     assert live.counters["companion stalls"] == 0
+
+
+def test_a_hold_over_a_second_is_the_pilots_cue():
+    fl = FakeLink()
+    console: list[str] = []
+    live = LiveCompanion(CFG, Profile.PAPER, fl, clock=lambda: fl.clock, wall=lambda: 1.7e9 + fl.clock,
+                         out=console.append, quiet=True)
+    live.router.vehicle_sysid, live.vehicle_compid = 1, 1
+    fl.live = live
+    fl.send_frame()
+    fl.fly(50)
+    fl.quality = 0  # the flow sensor says its frames are invalid
+    t0 = fl.clock
+    n_sent = len(fl.written)
+    fl.fly(int(3.0 / T_S))
+    said = [(t, m.text, m.severity) for t, m in fl.written[n_sent:] if m.get_type() == "STATUSTEXT"]
+    assert [(s, v) for _t, s, v in said] == [
+        ("flowhold: HOLD flow quality 0", mav.MAV_SEVERITY_WARNING),
+        ("flowhold: HOLD for 1 s, drifting: switch mode", mav.MAV_SEVERITY_CRITICAL)]
+    assert LONG_HOLD_S <= said[1][0] - said[0][0] <= LONG_HOLD_S + T_S + 1e-9  # the first frame past 1 s
+    assert said[0][0] == pytest.approx(t0 + T_S)
+    assert "flowhold: holding level for 1.0 s (flow quality 0): level is not hover" in "\n".join(console)

@@ -20,7 +20,9 @@ companion's with the wall clock):
   no more than a few steps' worth across the stall (integrating the backlog of a drifting vehicle
   moves it by about 2 deg);
 - the stall is named (``HOLD companion stalled``, not ``link lost``) and the number of frames
-  dropped is said in a STATUSTEXT and on the console, close to the frames sent during the stall.
+  dropped is said in a STATUSTEXT and on the console, close to the frames sent during the stall;
+- (issue 18 d) a hold that lasts over a second (the flow stream stopped) is said once more, at
+  CRITICAL, a second after its WARNING: the pilot's cue.
 
 The test is made tolerant of a loaded machine by measuring, not assuming: the stall's length is
 taken from the recording (the longest gap between commands), the dropped count is compared with
@@ -65,7 +67,8 @@ def _wait_leaning(gcs: Gcs, timeout_s: float = 90.0) -> None:
 
 @pytest.fixture(scope="module")
 def stalled(tmp_path_factory):
-    """Fly, stall the companion 2 s, fly on. Returns (companion recording, vehicle recording, companion console)."""
+    """Fly, stall the companion 2 s, fly on; then stop the flow until the long-hold cue is said.
+    Returns (companion recording, vehicle recording, companion console)."""
     tmp = tmp_path_factory.mktemp("stall")
     ctlog, vtlog = tmp / "companion.tlog", tmp / "vehicle.tlog"
     with Procs(tmp) as procs:
@@ -86,6 +89,12 @@ def stalled(tmp_path_factory):
             finally:
                 comp.p.send_signal(signal.SIGCONT)
             _wait_leaning(gcs)  # control is back
+            # a hold that lasts: the flow stream stops until the hold has lasted over a second
+            assert gcs.set_param("SIM_FLOW_FAULT", 4).param_value == 4
+            gcs.wait_text("flowhold: HOLD flow stale")
+            gcs.wait_text("flowhold: HOLD for 1 s")
+            assert gcs.set_param("SIM_FLOW_FAULT", 0).param_value == 0
+            gcs.wait_text("flowhold: resumed")
         finally:
             gcs.close()
         assert comp.stop() == 0
@@ -179,3 +188,17 @@ def test_the_stall_is_named_and_the_dropped_frames_counted(stalled):
     stall_s, dropped = max((float(a), int(b)) for a, b in console)
     assert stall_s == pytest.approx(gap_s, abs=0.1)
     assert dropped == n
+
+
+def test_a_hold_over_a_second_is_the_pilots_cue(stalled):
+    """A hold that lasts over 1 s is said once, at CRITICAL, after the WARNING naming the cause."""
+    crec, _vrec, text = stalled
+    st = crec.table("STATUSTEXT").from_sender(compid=191)
+    texts = [str(s) for s in st["text"]]
+    k = texts.index("flowhold: HOLD flow stale")
+    cue = [i for i, s in enumerate(texts) if s.startswith("flowhold: HOLD for 1 s") and i > k]
+    assert len(cue) == 1, texts  # once in the episode
+    assert int(st["severity"][cue[0]]) == 2  # MAV_SEVERITY_CRITICAL
+    assert int(st["severity"][k]) == 4  # MAV_SEVERITY_WARNING
+    assert 0.99 <= st.t_s[cue[0]] - st.t_s[k] < 1.3  # (recording stamps are taken a little after the hold begins)
+    assert "holding level for 1.0 s (flow stale)" in text
