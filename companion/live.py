@@ -37,8 +37,9 @@ reproduces them frame for frame. What only a live loop needs lives here:
   gyro values stuck while the vehicle turns;
 - announcements: taking and releasing control (NOTICE), holds (WARNING), a hold episode lasting
   over ``LONG_HOLD_S`` once more at CRITICAL (the pilot's cue: level is not hover), the GCS's
-  setpoints stopping, backlog frames dropped (WARNING) and "resumed" (NOTICE) go to the ground station as STATUSTEXT from component 191, rate limited (``TextLimiter``) so a
-  flapping cause cannot flood the link, and to the console;
+  setpoints stopping, backlog frames dropped (WARNING) and "resumed" (NOTICE) go to the ground
+  station as STATUSTEXT from component 191, rate limited (``TextLimiter``) so a flapping cause
+  cannot flood the link, and to the console;
 - no command leaves that is not finite and inside the tilt limit; a message that cannot be
   handled is counted and dropped, never fatal; on UDP each datagram is parsed on its own;
   commands to the companion are refused with a COMMAND_ACK; what is refused is counted in the
