@@ -1,5 +1,6 @@
 """Issue 18 (b, d) in process: the link's clock mapping, a stalled companion's backlog dropped (not
-replayed), a backlog on the link dropped by age, and the long-hold cue. Times are passed in (a
+replayed), a backlog on the link dropped by age, and what the pilot is told: the long-hold cue,
+the GCS's setpoints stopping. Times are passed in (a
 fake clock), so every number is exact; ``tests/test_stall_e2e.py`` does the same with real
 processes, SIGSTOP and UDP.
 
@@ -273,3 +274,30 @@ def test_a_hold_over_a_second_is_the_pilots_cue():
     assert LONG_HOLD_S <= said[1][0] - said[0][0] <= LONG_HOLD_S + T_S + 1e-9  # the first frame past 1 s
     assert said[0][0] == pytest.approx(t0 + T_S)
     assert "flowhold: holding level for 1.0 s (flow quality 0): level is not hover" in "\n".join(console)
+
+
+def test_the_gcs_setpoints_stopping_is_said_when_the_ramp_begins():
+    """Issue 18 "say it": a GCS setpoint not refreshed for ``setpoint_timeout_s`` (1 s) is held, then
+    ramps to the constant setpoint; the ramp's start is said once (WARNING) and on the console."""
+    fl = FakeLink()
+    console: list[str] = []
+    live = LiveCompanion(CFG, Profile.PAPER, fl, clock=lambda: fl.clock, wall=lambda: 1.7e9 + fl.clock,
+                         out=console.append, quiet=True)
+    live.router.vehicle_sysid, live.vehicle_compid = 1, 1
+    fl.live = live
+    fl.send_frame()
+    fl.fly(50)
+    gcs = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+    sp = gcs.set_position_target_local_ned_encode(0, 1, outbound.COMPANION_COMPONENT, 12, outbound.VELOCITY_TYPE_MASK,
+                                                  0, 0, 0, 0.4, 0.0, 0, 0, 0, 0, 0, 0)
+    fl.inbox.append(mav.MAVLink(None).decode(bytearray(sp.pack(gcs))))
+    t_sp = fl.clock
+    n_sent = len(fl.written)
+    fl.fly(int(2.5 / T_S))
+    said = [(t, m.text, m.severity) for t, m in fl.written[n_sent:] if m.get_type() == "STATUSTEXT"]
+    ramp = "flowhold: GCS setpoints stopped, ramp to hold"
+    assert [(s, v) for _t, s, v in said] == [(ramp, mav.MAV_SEVERITY_WARNING)]
+    timeout = CFG.companion.setpoint_timeout_s
+    assert timeout < said[0][0] - t_sp <= timeout + T_S + 1e-9
+    assert any(c.startswith(f"flowhold: GCS setpoints stopped for {timeout:g} s: ramping to +0.00 +0.00 m/s")
+               for c in console), console
