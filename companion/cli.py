@@ -30,8 +30,10 @@ def _add_recording(p: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m companion",
-        description="Optical-flow velocity hold beside an autopilot: live loop, replay, info, diagnose, fleet.")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,replay,info,diagnose,fleet}")
+        description="Optical-flow velocity hold beside an autopilot: live loop, replay, info, diagnose, fleet, "
+                    "the autopilot's watchdog applet.")
+    sub = parser.add_subparsers(dest="command", required=True,
+                                metavar="{run,replay,info,diagnose,fleet,ardupilot-script}")
 
     run = sub.add_parser("run", help="run the velocity-hold loop against a vehicle over MAVLink")
     run.add_argument("--connect", required=True,
@@ -87,6 +89,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="no Dask: one file after another in this process (the mode without the cluster extra)")
     fleet.add_argument("--vehicle-from", choices=("folder", "sysid"), default="folder",
                        help="a recording's vehicle: the folder holding it, or its MAVLink system id (default folder)")
+
+    script = sub.add_parser("ardupilot-script", help="the ArduCopter Lua applet that switches to LAND when the "
+                                                     "companion's commands stop (docs/ardupilot.md)")
+    script.add_argument("--out", help="folder to write flowhold_watchdog.lua into, created if missing "
+                                      "(default: print the script)")
     return parser
 
 
@@ -99,6 +106,8 @@ def _dispatch(command: str) -> Callable[[argparse.Namespace], int]:
         from companion.info import run_cli
     elif command == "fleet":
         from companion.fleet.run import run_cli
+    elif command == "ardupilot-script":
+        from companion.ardupilot_script import run_cli
     else:
         from companion.diagnose import run_cli
     return run_cli

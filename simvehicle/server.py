@@ -80,6 +80,7 @@ PEER_TIMEOUT_S = 30.0
 SUPPORTED_MODES = frozenset({0, 2, 9, 20})  # STABILIZE, ALT_HOLD, LAND, GUIDED_NOGPS
 ARMABLE_MODES = frozenset({0, 2, 20})
 STABILIZE = 0
+LAND = 9
 #: the scenario's velocity setpoints are sent as this ground station would (sysid, compid)
 SCENARIO_GCS = (255, mav.MAV_COMP_ID_MISSIONPLANNER)
 #: |q| may differ from 1 by this much (float32 rounding is ~1e-7)
@@ -187,6 +188,14 @@ def param_specs(cfg: Config) -> tuple[ParamSpec, ...]:
                   "m: how far the one reading of SIM_RNG_FAULT = 4 is off (kept inside the sensor's limits)"),
         ParamSpec("SIM_REBOOT", 0.0, 0.0, 1.0, True,
                   "1: the boot clock restarts at 0 (time fields jump back; the vehicle flies on)"),
+        ParamSpec("FHW_ENABLE", 0.0, 0.0, 1.0, True,
+                  "1: the flowhold watchdog applet runs (companion/ardupilot/flowhold_watchdog.lua): armed in "
+                  "GUIDED_NOGPS, no SET_ATTITUDE_TARGET from the companion for FHW_TIMEOUT switches to FHW_MODE"),
+        ParamSpec("FHW_TIMEOUT", 1.0, 0.1, 30.0, False,
+                  "s: the watchdog's wait for the companion's commands (simulated time)"),
+        ParamSpec("FHW_MODE", 9.0, 0.0, 30.0, True,
+                  "the mode the watchdog switches to: 9 LAND, 2 ALT_HOLD (a mode refused here, as BRAKE without "
+                  "GPS, gives LAND)"),
     )
 
 
@@ -399,6 +408,12 @@ class Vehicle:
         self.counters: Counter[str] = Counter()
         #: packets dropped on the links (bad CRC or header, unsigned, oversized): SYS_STATUS errors_comm
         self.comm_errors = 0
+        #: the companion (component 191 of this system): simulated time of its last SET_ATTITUDE_TARGET
+        #: and HEARTBEAT; the watchdog's episode (when GUIDED_NOGPS began) and whether it acted in it
+        self.companion_cmd_s = -math.inf
+        self.companion_hb_s = -math.inf
+        self._fhw_episode_s: float | None = None
+        self._fhw_acted = False
 
     # -- state ---------------------------------------------------------------------------
 
@@ -483,6 +498,8 @@ class Vehicle:
             sp = self.gcs_enc.set_position_target_local_ned_encode(
                 frame_ms & 0xFFFFFFFF, self.sysid, COMPANION_COMPONENT, mav.MAV_FRAME_BODY_FRD,
                 VELOCITY_TYPE_MASK, 0.0, 0.0, 0.0, vx, vy, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        if commit:
+            msgs += [(None, m) for m in self.watchdog()]
         return FrameOut(frame_ms, sp, msgs, notes)
 
     def sys_status(self) -> Any:
@@ -498,6 +515,36 @@ class Vehicle:
             health &= ~laser
         return self.enc.sys_status_encode(present, present, health, 0, 12600, -1, 100, 0,
                                           min(self.comm_errors, 0xFFFF), min(self.refused, 0xFFFF), 0, 0, 0)
+
+    def watchdog(self) -> list[Any]:
+        """The flowhold watchdog applet (``companion/ardupilot/flowhold_watchdog.lua``) as this
+        vehicle runs it, each frame in simulated time (the applet: every 50 ms): armed in
+        GUIDED_NOGPS with ``FHW_ENABLE`` 1, once the companion's SET_ATTITUDE_TARGETs have stopped
+        for more than ``FHW_TIMEOUT`` since the later of the last one and the start of the episode,
+        a STATUSTEXT (CRITICAL) and a switch to ``FHW_MODE`` (LAND if that is refused), once per
+        episode. Returns the messages to send (the texts, and the HEARTBEAT of the new mode)."""
+        v = self.values
+        if not (v["FHW_ENABLE"] >= 1 and self.armed and self.guided):
+            self._fhw_episode_s = None
+            return []
+        now = self.sim.t_s
+        if self._fhw_episode_s is None:
+            self._fhw_episode_s, self._fhw_acted = now, False
+        timeout = v["FHW_TIMEOUT"]
+        if self._fhw_acted or now - max(self._fhw_episode_s, self.companion_cmd_s) <= timeout + 1e-9:
+            return []
+        self._fhw_acted = True
+        mode = int(v["FHW_MODE"])
+        why = "no commands" if now - self.companion_hb_s <= timeout else "companion lost"
+        crit = mav.MAV_SEVERITY_CRITICAL
+        out = [link.statustext(self.enc, f"flowhold watchdog: {why} {timeout:.1f} s: {link.mode_name(mode)}", crit)]
+        flag = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if self._set_mode(flag, mode) == mav.MAV_RESULT_ACCEPTED:
+            return [*out, self.heartbeat()]
+        out.append(link.statustext(self.enc, f"flowhold watchdog: {link.mode_name(mode)} refused", crit))
+        if mode != LAND and self._set_mode(flag, LAND) == mav.MAV_RESULT_ACCEPTED:
+            out += [link.statustext(self.enc, "flowhold watchdog: LAND instead", crit), self.heartbeat()]
+        return out
 
     def command_to_activate(self) -> tuple[float, float]:
         """The (roll, pitch) command to make active at the end of this frame (rad)."""
@@ -528,6 +575,11 @@ class Vehicle:
     def handle(self, msg: Any, streams: StreamSchedule) -> list[Reply]:
         """Answer one incoming message addressed to this vehicle."""
         mtype = msg.get_type()
+        if msg.get_srcComponent() == COMPANION_COMPONENT and msg.get_srcSystem() == self.sysid:
+            if mtype == "SET_ATTITUDE_TARGET":  # (taken or not: the watchdog sees it arrive)
+                self.companion_cmd_s = self.sim.t_s
+            elif mtype == "HEARTBEAT":
+                self.companion_hb_s = self.sim.t_s
         if mtype == "SET_ATTITUDE_TARGET":
             self._attitude_target(msg)
             return []
@@ -862,7 +914,10 @@ class UdpVehicle:
     def send_frame(self) -> None:
         """Send the current frame to every peer whose stream schedule wants each message: one
         datagram per peer holding its packets in order (as an autopilot's UDP link batches)."""
+        before = self.v.status()
         out = self.v.frame()
+        if self.v.status() != before:  # the watchdog switched mode
+            self.log(f"simvehicle: {self.v.status()} at t={self.v.sim.t_s:.2f} s (flowhold watchdog)")
         peers = self._live_peers()
         batches: dict[tuple[str, int], list[bytes]] = {p.addr: [] for p in peers}
         if out.scenario_setpoint is not None:
