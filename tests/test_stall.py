@@ -1,8 +1,7 @@
 """Issue 18 (b, d) in process: the link's clock mapping, a stalled companion's backlog dropped (not
 replayed), a backlog on the link dropped by age, and what the pilot is told: the long-hold cue,
-the GCS's setpoints stopping. Times are passed in (a
-fake clock), so every number is exact; ``tests/test_stall_e2e.py`` does the same with real
-processes, SIGSTOP and UDP.
+the GCS's setpoints stopping. Times are passed in (a fake clock), so every number is exact;
+``tests/test_stall_e2e.py`` does the same with real processes, SIGSTOP and UDP.
 
 The harness is the live loop itself (``LiveCompanion.run``) on a fake link that hands it the
 reference simulator's frames, one per frame period of the fake clock, and advances the simulator
