@@ -25,6 +25,7 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/run.py
+	$(PY) benchmarks/render_performance.py
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check companion simvehicle tests benchmarks scripts

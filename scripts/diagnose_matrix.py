@@ -8,7 +8,7 @@ closed loop by the reference simulator and recorded (cached in ``OUT/recordings`
 when the case or the noise settings change). The diagnosis runs as a user runs it,
 ``python -m companion diagnose REC --json OUT.json``, in a subprocess that sees only the recording.
 ``simvehicle.flights.score`` compares the report with the truth under the issue's tolerances.
-The table goes to ``--doc`` (the README's matrix section points there) and a summary line to stdout.
+The table goes to ``--doc`` (docs/diagnose.md and the README point there) and a summary line to stdout.
 """
 
 from __future__ import annotations
@@ -227,8 +227,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", nargs="*", help="case names (default: all)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--doc", default="docs/diagnose_matrix.md", help="where the table goes ('' for nowhere)")
-    ap.add_argument("--readme", default="README.md",
-                    help="README whose diagnose-matrix section (between its markers) is rewritten ('' for none)")
+    ap.add_argument("--readme", default="",
+                    help="a README whose diagnose-matrix section (between its markers) is also rewritten "
+                         "(default: none; the project's README links docs/diagnose_matrix.md instead)")
     args = ap.parse_args(argv)
     cases = list(MATRIX) if not args.cases else [c for c in MATRIX if c.name in set(args.cases)]
     unknown = set(args.cases or []) - {c.name for c in cases}
