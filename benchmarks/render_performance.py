@@ -374,8 +374,8 @@ def readme_block(results: dict[str, Any]) -> str:
         rows.append(f"| reading a recording in process ({long['label']}) | {long['read']['warm_s']:.2f} s, "
                     f"{_x(q['read_warm'])} pymavlink's loop ({b['loop_s']:.1f} s) | >= {READER_TARGET:.0f}x: "
                     f"{_verdict(q['read_warm'] >= READER_TARGET)} |")
-        rows.append(f"| `python -m companion replay --csv` of the same, whole command | {_s(long['replay_csv']['wall_s'])}, "
-                    f"{_x(q['replay_csv'])} | >= {COMMAND_TARGET:.0f}x: "
+        rows.append(f"| `python -m companion replay --csv` of the same, whole command | "
+                    f"{_s(long['replay_csv']['wall_s'])}, {_x(q['replay_csv'])} | >= {COMMAND_TARGET:.0f}x: "
                     f"{_verdict((q['replay_csv'] or 0) >= COMMAND_TARGET)} |")
     diag = [(k, n[f"diagnose_{k}s"]) for k in (150, 600, 3600) if f"diagnose_{k}s" in n]
     if diag:
