@@ -73,7 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_recording(diag)
     _add_common(diag)
     diag.add_argument("--json", help="write the mismatch report (CONVENTIONS.md) here")
-    diag.add_argument("--report", help="write a Markdown report with plots into this folder")
+    diag.add_argument("--report", metavar="DIR",
+                      help="write the report into this folder: report.md with its PNG plots, and report.html, "
+                           "the same as one page with the plots embedded (opens offline), led by what differs, "
+                           "how sure, and what to change in the config")
 
     fleet = sub.add_parser("fleet", help="diagnose every recording of a fleet on Dask (one task per file): "
                                          "a table, the reports and an HTML summary")

@@ -13,6 +13,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+#: units of CONVENTIONS.md's parameter keys (SI; scales relative to the nominal Q), for labels and reports
+PARAMETER_UNITS = {"b": "N s/m", "bias_x": "rad/s", "bias_y": "rad/s", "scale_x": "x nominal Q",
+                   "scale_y": "x nominal Q", "delay": "s", "yaw": "rad", "omega_p": "rad/s", "zeta": "1",
+                   "offset": "m", "fx": "N", "fy": "N", "start_s": "s", "end_s": "s", "gain": "1",
+                   "c": "N s^2/m^2", "rx": "m", "ry": "m", "rz": "m", "tau": "s"}
+
 
 @dataclass
 class Window:

@@ -1660,13 +1660,17 @@ def plot_diagnosis(d: SensorDiagnosis, path: Path) -> None:
 
 
 def write_report_dir(d: SensorDiagnosis, report_dir: Path) -> Path:
-    """Write ``<stem>_sensor.png`` and ``report.md`` into ``report_dir``; returns the .md path."""
+    """Write ``<stem>_sensor.png``, ``report.md`` and ``report.html`` (the same, one page with the
+    plot embedded) into ``report_dir``; returns the .md path."""
+    from companion.report_html import write_html_report
+
     report_dir.mkdir(parents=True, exist_ok=True)
     stem = recording_stem(d.series.name)
     png = report_dir / f"{stem}_sensor.png"
     plot_diagnosis(d, png)
     md = report_dir / "report.md"
     md.write_text(markdown_report(d, png.name))
+    write_html_report(d.report, md, q_rad_per_count=d.series.q_rad_per_count)
     return md
 
 

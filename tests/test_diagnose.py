@@ -352,6 +352,30 @@ def test_the_planted_gyro_bias_is_named_and_improves_the_heldout_fit(short_repor
         assert (out / "rep" / png).stat().st_size > 10_000
 
 
+def test_the_html_report_is_one_offline_page_led_by_the_headline(short_report):
+    """Issue 14: ``--report DIR`` also writes ``DIR/report.html``: the Markdown report's content with
+    its three plots embedded, nothing loaded from elsewhere, and first, in plain words, what differs
+    (the JSON's headline), how sure, and what to change in the config with the fitted values."""
+    import html
+    import re
+
+    from test_report_html import external_references
+
+    rep, proc, out = short_report
+    page = (out / "rep" / "report.html").read_text()
+    assert f"report: {out / 'rep' / 'report.html'}" in proc.stdout
+    assert external_references(page) == []
+    assert page.count("data:image/png;base64,") == 3  # residuals, models, velocity
+    first = html.unescape(re.search(r'<p class="lead" id="headline">(.*?)</p>', page).group(1))
+    assert first.startswith(rep["headline"].rstrip(".") + ".")
+    bias = next(f for f in rep["findings"] if f["effect"] == "gyro_bias")
+    assert f"bias_x {bias['parameters']['bias_x']:.4g} ± " in first  # how sure: the size with its 1 sigma
+    assert f"{bias['fit']['improvement_pct']:.0f} % less error on data the fit never saw" in first
+    assert (f"In the config, set [effects.gyro_bias] enabled = true, bias_x = {bias['parameters']['bias_x']:.4g}, "
+            f"bias_y = {bias['parameters']['bias_y']:.4g}.") in first
+    assert "Every effect tried" in page and "gyro_bias" in page.split("The evidence", 1)[1]
+
+
 def test_missing_recording_is_one_line_error(tmp_path):
     proc = run_cli(str(tmp_path / "nope.tlog"), timeout_s=60)
     assert proc.returncode == 4

@@ -298,3 +298,27 @@ def test_cli_writes_json_and_report(tmp_path, capsys):
     assert png.stat().st_size > 10_000
     assert "flow_test_x_axis_01_sensor.png" in (tmp_path / "rep" / "report.md").read_text()
     assert "flow_scale" in capsys.readouterr().out
+
+
+def test_the_sensor_report_is_also_one_offline_html_page(tmp_path):
+    """Issue 14: the sensor-only ``--report DIR`` writes ``report.html`` beside ``report.md``: the plot
+    embedded, no external reference, and first in plain words what differs, how sure, and the
+    config's Q with the fitted scale (square_30cm: scale identifiable on both axes)."""
+    import html
+    import re
+
+    from test_report_html import external_references
+
+    args = build_parser().parse_args(["diagnose", str(_path("square_30cm.csv")), "--sensor-config", str(MAP),
+                                      "--json", str(tmp_path / "x.json"), "--report", str(tmp_path / "rep")])
+    assert run_sensor_cli(args) == 0
+    page = (tmp_path / "rep" / "report.html").read_text()
+    assert external_references(page) == [] and page.count("data:image/png;base64,") == 1
+    data = json.loads((tmp_path / "x.json").read_text())
+    scale = next(f for f in data["findings"] if f["effect"] == "flow_scale")
+    assert scale["significant"]
+    first = html.unescape(re.search(r'<p class="lead" id="headline">(.*?)</p>', page).group(1))
+    assert first.startswith("The recording differs from the nominal model: ") and "flow_scale" in first
+    p = scale["parameters"]
+    q = load_config().flow_sensor.q_rad_per_count * (p["scale_x"] + p["scale_y"]) / 2
+    assert f"In the config, set [flow_sensor] q_rad_per_count = {q:.4g}." in first

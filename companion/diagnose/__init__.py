@@ -8,7 +8,8 @@ gyro against the attitude, the flow against the rotation and the plant, and the 
 Candidate effects (CONVENTIONS.md) are fitted, kept only when they earn their parameters on
 held-out data (``select``), located in time and by operating condition (``locate``); what they do
 not explain goes through sparse regression (``sparse``). Output: the JSON report of
-CONVENTIONS.md (``--json``), a Markdown report with plots (``--report``), a summary on stdout.
+CONVENTIONS.md (``--json``), a Markdown report with plots and the same as one self-contained
+HTML page (``--report``: ``report.md``, ``report.html``), a summary on stdout.
 Method: docs/diagnose.md.
 
 Recordings without a commanded attitude (or given ``--sensor-config``) go to the sensor-only
@@ -37,7 +38,7 @@ __all__ = ["run_cli", "diagnose_recording", "summary"]
 
 def diagnose_recording(path: str | Path, *, config: str | Path | None = None, profile: str | None = None,
                        report_dir: str | Path | None = None) -> Diagnosis:
-    """Load, diagnose, optionally write the Markdown report; returns the ``Diagnosis``."""
+    """Load, diagnose, optionally write the Markdown and HTML reports; returns the ``Diagnosis``."""
     from companion.diagnose.diagnosis import diagnose
 
     cfg = load_config(config)
@@ -46,8 +47,16 @@ def diagnose_recording(path: str | Path, *, config: str | Path | None = None, pr
     if report_dir is not None:
         from companion.diagnose.markdown import write_report
 
-        write_report(diag, report_dir)
+        _write_html(diag, write_report(diag, report_dir))
     return diag
+
+
+def _write_html(diag: Diagnosis, markdown_path: Path) -> Path:
+    """``report.html`` beside the Markdown report: the same content, plots embedded, the first line
+    in plain words."""
+    from companion.report_html import write_html_report
+
+    return write_html_report(diag.report, markdown_path, q_rad_per_count=diag.cfg.flow_sensor.q_rad_per_count)
 
 
 def _sensor_mode(args: argparse.Namespace) -> int:
@@ -96,11 +105,13 @@ def run_cli(args: argparse.Namespace) -> int:
         from companion.diagnose.markdown import write_report
 
         out = write_report(diag, args.report)
+        html_out = _write_html(diag, out)
     print(summary(report))
     if args.json:
         print(f"json: {args.json}")
     if args.report:
         print(f"report: {out}")
+        print(f"report: {html_out} (one page, plots embedded)")
     return 0
 
 

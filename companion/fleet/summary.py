@@ -17,11 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.fleet.table import NOT_VEHICLE_PROPERTIES, OUTLIER_SIGMA, TIME_PARAMETERS
-
-#: SI units of CONVENTIONS.md's parameter keys (axis labels)
-UNITS = {"b": "N s/m", "bias_x": "rad/s", "bias_y": "rad/s", "scale_x": "x nominal Q", "scale_y": "x nominal Q",
-         "delay": "s", "yaw": "rad", "omega_p": "rad/s", "zeta": "1", "offset": "m", "fx": "N", "fy": "N",
-         "gain": "1", "c": "N s^2/m^2", "rx": "m", "ry": "m", "rz": "m", "tau": "s"}
+from companion.report import PARAMETER_UNITS as UNITS
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ddd}
