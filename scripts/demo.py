@@ -67,6 +67,12 @@ def watch_lines(port: int) -> list[str]:
             "real time: docs/loop.md, \"Watching with MAVProxy or QGroundControl\")"]
 
 
+def gust_force(t_s: float) -> tuple[float, float]:
+    """The external force the ground station switches on at GUST_AT_S (SIM_WIND_FX, body x, N),
+    as a function of time: what loop.png marks."""
+    return (GUST_N, 0.0) if t_s >= GUST_AT_S else (0.0, 0.0)
+
+
 def _setpoint_at(t_s: float) -> tuple[float, float]:
     vx = vy = 0.0
     for t0, sx, sy in PROFILE:
@@ -165,13 +171,16 @@ def main() -> int:
     from simvehicle.server import recording_run
 
     run = recording_run(vtlog, name="MAVLink loop (lockstep)")
-    plot_run(run, png)
+    plot_run(run, png, force=gust_force, title="make demo: the companion and the simulated vehicle over MAVLink "
+                                               "(lockstep)")
     t, x = run["t_s"], run["x_m"]
-    cruise = (t >= 9.0) & (t < 12.0)
+    cruise_end = PROFILE[2][0]
+    cruise = (t >= cruise_end - 3.0) & (t < cruise_end)  # the last 3 s before the setpoint returns to 0
+    sp = _setpoint_at(cruise_end - 3.0)
     i_gust = int(np.searchsorted(t, GUST_AT_S))
     print(f"flew {t[-1]:.1f} s of simulated time in {time.monotonic() - t0:.1f} s: "
           f"cruise {np.mean(run['vx_m_s'][cruise]):.3f}, {np.mean(run['vy_m_s'][cruise]):.3f} m/s "
-          f"(setpoint 1.5, -0.5); the gust pushed it back {x[i_gust] - x[-1]:.2f} m and it holds at "
+          f"(setpoint {sp[0]:g}, {sp[1]:g}); the gust pushed it back {x[i_gust] - x[-1]:.2f} m and it holds at "
           f"{abs(run['vx_m_s'][-1]):.3f} m/s")
     print(f"plot: {png}")
     print(f"recordings: {vtlog} (vehicle), {ctlog} (companion); logs: {vlog}, {clog}")

@@ -84,9 +84,11 @@ def _scenario(args: argparse.Namespace) -> int:
             fh.write(text + "\n")
     if args.plot:
         from simvehicle.plots import plot_run
+        from simvehicle.scenarios import SCENARIOS
 
+        scenario = SCENARIOS.get(args.name)
         with writing("--plot", args.plot):
-            plot_run(run, args.plot)
+            plot_run(run, args.plot, force=scenario.force if scenario is not None else None)
     if args.json != "-":
         print(_summary(fig))
         for label, p in (("recording", args.tlog), ("plot", args.plot), ("figures", args.json)):

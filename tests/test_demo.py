@@ -41,3 +41,49 @@ def test_demo_prints_the_address_a_ground_station_can_watch_it_on(tmp_path):
     assert "UDP 14550" not in text.split("to watch a flight in real time")[0]
     assert re.search(r"vehicle: python -m simvehicle serve --lockstep on udp 127\.0\.0\.1:(\d+)", text).group(1) \
         == str(port)
+
+
+def _demo_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("demo", REPO / "scripts" / "demo.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_loop_png_draws_both_setpoints_and_marks_the_gust_from_the_demos_own_profile():
+    """Issue 14: loop.png drew the x setpoint only and nothing showed the gust. The figure now draws
+    both setpoints and a line at the gust on every panel, labelled with its size; time and size come
+    from the demo's GUST_AT_S and GUST_N (what the ground station's PARAM_SET sends), not typed."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from simvehicle.plots import force_steps, run_figure
+    from simvehicle.scenarios import _COLUMNS, Run
+
+    demo = _demo_module()
+    t = np.arange(0.0, demo.DURATION_S, 0.02)
+    cols = {k: np.zeros_like(t) for k in _COLUMNS}
+    cols["t_s"] = t
+    sp = np.array([demo._setpoint_at(x) for x in t])
+    cols["vx_set_m_s"], cols["vy_set_m_s"] = sp[:, 0], sp[:, 1]
+    assert np.any(cols["vy_set_m_s"] != 0) and np.any(cols["vx_set_m_s"] != cols["vy_set_m_s"])
+    fig = run_figure(Run("loop", cols), force=demo.gust_force)
+    try:
+        ax0 = fig.axes[0]
+        lines = {ln.get_label(): ln for ln in ax0.get_lines()}
+        np.testing.assert_array_equal(lines["setpoint vx"].get_ydata(), cols["vx_set_m_s"])
+        np.testing.assert_array_equal(lines["setpoint vy"].get_ydata(), cols["vy_set_m_s"])
+        t_gust = float(t[np.searchsorted(t, demo.GUST_AT_S - 1e-9)])
+        assert force_steps(demo.gust_force, t) == [(t_gust, demo.GUST_N, 0.0)]
+        for ax in fig.axes:  # the gust on every panel, and every panel's y axis has a unit
+            assert any(np.allclose(ln.get_xdata(), t_gust) for ln in ax.get_lines()), ax.get_ylabel()
+            assert re.search(r"\((m/s|deg|counts/frame|rad/s)\)$", ax.get_ylabel())
+        texts = [a.get_text() for a in ax0.texts]
+        assert texts == [f"gust: external force Fx {demo.GUST_N:+g} N from {t_gust:g} s"]
+        assert fig.axes[-1].get_xlabel() == "time (s)"
+    finally:
+        plt.close(fig)
+    assert demo.gust_force(demo.GUST_AT_S) == (demo.GUST_N, 0.0)
+    assert demo.gust_force(demo.GUST_AT_S - 0.02) == (0.0, 0.0)
