@@ -17,7 +17,7 @@ import math
 from dataclasses import dataclass
 
 from companion.config import EFFECT_TYPES
-from companion.report import PARAMETER_UNITS, Finding, Report
+from companion.report import Finding, Report
 
 #: effects that describe the flight, not the vehicle: nothing to change in a vehicle's config
 CIRCUMSTANCES = {"wind_force": "a wind during this flight, not a property of the vehicle"}
@@ -87,15 +87,14 @@ def config_changes(report: Report, *, q_rad_per_count: float) -> list[ConfigChan
     return [c for c in changes if c is not None]
 
 
-def _pm(key: str, v: float, sd: float) -> str:
-    unit = PARAMETER_UNITS.get(key, "")
-    unit = "" if unit in ("", "1") else f" {unit}"
+def _pm(key: str, v: float, sd: float, unit: str) -> str:
+    unit = f" {unit}" if unit else ""
     return f"{key} {v:.4g} ± {sd:.2g}{unit}" if math.isfinite(sd) else f"{key} {v:.4g}{unit}"
 
 
 def how_sure(f: Finding) -> str:
     """How sure the report is of one finding, in words: its size with 1 sigma and its held-out gain."""
-    sizes = ", ".join(_pm(k, v, f.uncertainty.get(k, math.nan)) for k, v in f.parameters.items()
+    sizes = ", ".join(_pm(k, v, f.uncertainty.get(k, math.nan), f.unit(k)) for k, v in f.parameters.items()
                       if math.isfinite(v))
     head = f"{f.effect} ({sizes})" if sizes else f.effect
     if f.effect in LOG_TIMING:

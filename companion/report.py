@@ -66,6 +66,16 @@ class Finding:
     #: ``{"effect", "parameters", "cv_t"}`` each, cv_t the held-out advantage of this one (< 2)
     alternatives: list[dict[str, Any]] = field(default_factory=list)
 
+    def unit(self, key: str) -> str:
+        """The unit of parameter ``key``: the finding's own (``evidence["units"]``, for parameters
+        outside CONVENTIONS.md such as a count of readings), else CONVENTIONS.md's; "" for a
+        dimensionless one or one whose name carries its unit (``longest_gap_s``)."""
+        own = self.evidence.get("units", {})
+        if key in own:
+            return str(own[key])
+        unit = PARAMETER_UNITS.get(key, "")
+        return "" if unit == "1" else unit
+
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "effect": self.effect,

@@ -371,7 +371,8 @@ def timing_findings(s: SensorSeries, tm: TimingAnalysis) -> list[Finding]:
         parameters={"count": round(tm.n_missing, 1), "fraction": frac, "in_gaps": in_gaps,
                     "longest_gap_s": longest},
         uncertainty={}, explanation=why, where=where, fit=None,
-        evidence={"constraint": "log timing", "read_period_ms": period_ms, "median_row_step_ms": med_ms,
+        evidence={"constraint": "log timing", "units": {"count": "readings", "in_gaps": "readings"},
+                  "read_period_ms": period_ms, "median_row_step_ms": med_ms,
                   "rows": tm.n_rows, "expected_readings": expected, "read_grid": tm.grid.method,
                   "gaps": [{"start_s": a, "end_s": b, "readings_lost": m} for a, b, m in tm.gaps],
                   "handling": "the displacement sums weight each reading by the time its row covers "
@@ -398,7 +399,8 @@ def timing_findings(s: SensorSeries, tm: TimingAnalysis) -> list[Finding]:
                     "fraction_of_nonzero_rows": rep_nz if tm.grid.slot is not None else 0.0,
                     "repeated_timestamps": tm.n_same_timestamp},
         uncertainty={}, explanation=why_r, where=where_r, fit=None,
-        evidence={"constraint": "log timing", "read_grid": tm.grid.method,
+        evidence={"constraint": "log timing", "units": {"count": "rows", "repeated_timestamps": "rows"},
+                  "read_grid": tm.grid.method,
                   "read_phase_ms": None if tm.grid.phase_s is None else 1e3 * tm.grid.phase_s,
                   "identical_consecutive_rows": tm.identical_consecutive,
                   "handling": "repeats are dropped before any fit or sum (the first row of each read slot is kept)"})
@@ -428,7 +430,8 @@ def range_finding(s: SensorSeries, settings: SensorDiagnosisSettings) -> Finding
             uncertainty={},
             explanation=(f"The range value changes {len(tu) - 1} times in {duration:.0f} s: a steady height gives "
                          f"no update timing to judge."),
-            where=[], fit=None, evidence={"constraint": "log timing", "rows": len(r)})
+            where=[], fit=None, evidence={"constraint": "log timing", "units": {"long_holds": "holds"},
+                                          "rows": len(r)})
     return Finding(
         effect="held_range", significant=bool(held > 0.5),
         parameters={"update_rate_hz": rate, "held_fraction": held, "median_update_s": med,
@@ -439,7 +442,8 @@ def range_finding(s: SensorSeries, settings: SensorDiagnosisSettings) -> Finding
                      f"{1e3 * limit:.0f} ms (a steady height also repeats a value, so holds bound the update rate "
                      f"from below)."),
         where=where, fit=None,
-        evidence={"constraint": "log timing", "rows": len(r), "new_values": int(np.sum(new)),
+        evidence={"constraint": "log timing", "units": {"long_holds": "holds"}, "rows": len(r),
+                  "new_values": int(np.sum(new)),
                   "handling": "range is interpolated between logged values at each flow row"})
 
 
@@ -930,6 +934,8 @@ def displacement_parts(series: SensorSeries, rows: np.ndarray, bias: np.ndarray,
 
 
 AXIS_NAMES = ("+x", "-x", "+y", "-y")
+#: at a corner without a pause, a leg's sideways displacement is taken between its first and last this many s
+CROSS_END_S = 0.1
 
 
 @dataclass
@@ -946,7 +952,9 @@ class Leg:
     d_flow_x: float  # m at the nominal Q
     d_flow_y: float
     d_rotation: float
-    cross_m: float  # sideways displacement between two pauses at the nominal Q (NaN at a corner)
+    #: sideways displacement across the leg at the nominal Q: between the pauses around it, or
+    #: between its own first and last 0.1 s where it turns a corner without a pause
+    cross_m: float
 
     @property
     def name(self) -> str:
@@ -1003,9 +1011,13 @@ def find_legs(disp: Displacement, settings: SensorDiagnosisSettings, scale: floa
         def diff(x: np.ndarray, ax: int, before=before, after=after) -> float:
             return _mean_in(t, x[:, ax], after) - _mean_in(t, x[:, ax], before)
 
+        # across the leg: the pause windows where there are pauses; at a corner the neighbour leg
+        # moves along this leg's cross axis, so the leg's own ends instead
+        cross_before = before if kind_b == "pause" else (float(t[a]), float(t[a]) + CROSS_END_S)
+        cross_after = after if kind_a == "pause" else (float(t[b - 1]) - CROSS_END_S, float(t[b - 1]))
+        cross = _mean_in(t, p[:, 1 - axis], cross_after) - _mean_in(t, p[:, 1 - axis], cross_before)
         leg = Leg(float(t[a]), float(t[b - 1]), axis, direction, before, after,
-                  diff(disp.flow_x, axis), diff(disp.flow_y, axis), diff(disp.rotation, axis),
-                  diff(p, 1 - axis) if kind_b == kind_a == "pause" else float("nan"))
+                  diff(disp.flow_x, axis), diff(disp.flow_y, axis), diff(disp.rotation, axis), cross)
         if leg.length(scale, scale) >= 0.03:
             legs.append(leg)
     return legs
@@ -1584,12 +1596,13 @@ def plot_diagnosis(d: SensorDiagnosis, path: Path) -> None:
             ax.annotate(f"{100 * lg.length(1.0, 1.0):.1f} / {100 * lg.length(d.scale[0], d.scale[1]):.1f} cm",
                         (0.5 * (lg.start_s + lg.end_s), 100 * base), fontsize=8, ha="center",
                         xytext=(0, -12 if lg.direction > 0 else 12), textcoords="offset points")
-        ax.set_title(f"{'xy'[a]}: running sum of rotation-compensated flow x range")
+        ax.set_title(f"{'xy'[a]} position from the flow (gyro rotation removed, times range), "
+                     f"{'mm' if unit > 100 else 'cm'}")
         ax.set_xlabel("time from first row (s)")
         ax.set_ylabel("displacement (mm)" if unit > 100 else "displacement (cm)")
         ax.grid(alpha=0.3)
         if d.motion is not None:
-            ax.plot([], [], color="C3", lw=2, label=f"documented {100 * d.motion.leg_m:.0f} cm leg end")
+            ax.plot([], [], color="C3", lw=2, label=f"{_leg_reference(d.motion)} leg end")
         ax.legend(fontsize=8, loc="best")
     band = d.band
     ax = axs[1, 0]
@@ -1625,12 +1638,13 @@ def plot_diagnosis(d: SensorDiagnosis, path: Path) -> None:
         ax.bar(x - 0.2, [100 * lg.length(1.0, 1.0) for lg in d.legs], 0.4, color="0.6", label="paper model (Q)")
         ax.bar(x + 0.2, [100 * lg.length(d.scale[0], d.scale[1]) for lg in d.legs], 0.4, color="C0",
                label="extended (fitted scale)")
-        ax.axhline(100 * d.motion.leg_m, color="C3", lw=2, label=f"documented {100 * d.motion.leg_m:.0f} cm")
+        ax.axhline(100 * d.motion.leg_m, color="C3", lw=2, label=_leg_reference(d.motion))
         ax.axhspan(100 * d.motion.leg_m * (1 - d.band.settings.leg_tolerance_rel),
                    100 * d.motion.leg_m * (1 + d.band.settings.leg_tolerance_rel), color="C3", alpha=0.1)
         ax.set_xticks(x, [f"{lg.name}\n{lg.start_s:.0f}s" for lg in d.legs], fontsize=7)
         ax.set_ylabel("leg length (cm)")
-        ax.set_title("reconstructed legs against the documented length (+-10 % shaded)")
+        ax.set_title(f"reconstructed legs against the {'documented' if d.motion.documented else 'assumed'} "
+                     f"length (+-{100 * d.band.settings.leg_tolerance_rel:.0f} % shaded), cm")
         ax.legend(fontsize=8, loc="lower right")
     else:
         tt = s.t_s[d.rows]
@@ -1659,6 +1673,17 @@ def plot_diagnosis(d: SensorDiagnosis, path: Path) -> None:
     plt.close(fig)
 
 
+def _fmt_param(f: Finding, key: str, v: float) -> str:
+    """``key value +- sigma unit`` of one parameter, ``n/a`` when not identifiable."""
+    text = f"{key} {_fmt_g(v, f.uncertainty.get(key, float('nan')))}"
+    return text + (f" {f.unit(key)}" if f.unit(key) and np.isfinite(v) else "")
+
+
+def _leg_reference(m: DocumentedMotion) -> str:
+    """``documented 20 cm`` where the maker documents the legs, ``assumed 20 cm`` where they are assumed."""
+    return f"{'documented' if m.documented else 'assumed'} {100 * m.leg_m:.0f} cm"
+
+
 def write_report_dir(d: SensorDiagnosis, report_dir: Path) -> Path:
     """Write ``<stem>_sensor.png``, ``report.md`` and ``report.html`` (the same, one page with the
     plot embedded) into ``report_dir``; returns the .md path."""
@@ -1681,14 +1706,17 @@ def markdown_report(d: SensorDiagnosis, png_name: str) -> str:
              "| effect | significant | parameters | held-out RMS before -> after | explanation |",
              "|---|---|---|---|---|"]
     for f in rep.findings:
-        params = ", ".join(f"{k} {_fmt_g(v, f.uncertainty.get(k, float('nan')))}" for k, v in f.parameters.items())
+        params = ", ".join(_fmt_param(f, k, v) for k, v in f.parameters.items())
         if f.fit is not None:
             fit = f"{f.fit.heldout_rms_before:.4g} -> {f.fit.heldout_rms_after:.4g}"
         else:
             fit = "(counted, not fitted)" if f.evidence.get("constraint") == "log timing" else "n/a"
         lines.append(f"| {f.effect} | {'yes' if f.significant else 'no'} | {params} | {fit} | {f.explanation} |")
     if d.legs and d.motion is not None:
-        lines += ["", f"## Legs (documented {100 * d.motion.leg_m:.0f} cm; {d.motion.source})", "",
+        lines += ["", f"## Legs ({_leg_reference(d.motion)}; {d.motion.source})", "",
+                  "Each leg's length along its axis with the paper's Q and with the fitted scale, the part of it "
+                  "that is rotation removed with the gyro, and how far it went sideways (across its axis, at the "
+                  "paper's Q, between the pauses around it, or between its own ends where it turns a corner).", "",
                   "| leg | time (s) | paper Q (cm) | fitted scale (cm) | rotation part (cm) | sideways (cm) |",
                   "|---|---|---|---|---|---|"]
         for lg in d.legs:
@@ -1711,7 +1739,8 @@ def summary_lines(rep: Report) -> list[str]:
     out = [f"{rep.recording}: sensor-only diagnosis"]
     for f in rep.findings:
         params = ", ".join(
-            (f"{k}={v:.4g}" + (f"+-{f.uncertainty[k]:.2g}" if np.isfinite(f.uncertainty.get(k, np.nan)) else ""))
+            (f"{k}={v:.4g}" + (f"+-{f.uncertainty[k]:.2g}" if np.isfinite(f.uncertainty.get(k, np.nan)) else "")
+             + (f" {f.unit(k)}" if f.unit(k) else ""))
             if np.isfinite(v) else f"{k}=n/a" for k, v in f.parameters.items())
         mark = "*" if f.significant else " "
         out.append(f" {mark} {f.effect:<24} {params}")
@@ -1733,6 +1762,11 @@ def run_sensor_cli(args: Any) -> int:
         rep.write_json(args.json)
     for line in summary_lines(rep):
         print(line)
+    if getattr(args, "json", None):
+        print(f"json: {args.json}")
+    if report_dir:
+        print(f"report: {Path(report_dir) / 'report.md'}")
+        print(f"report: {Path(report_dir) / 'report.html'} (one page, plot embedded)")
     return 0
 
 

@@ -84,7 +84,8 @@ def legs_row(d: SensorDiagnosis, pooled: np.ndarray) -> str:
     legs = ", ".join(f"{lg.name} {100 * lg.length(1, 1):.1f} / {100 * lg.length(d.scale[0], d.scale[1]):.1f} / "
                      f"{100 * lg.length(pooled[0], pooled[1]):.1f}" for lg in d.legs)
     ho = (f"{100 * f.heldout_before_:.1f} → {100 * f.heldout_after_:.1f}" if np.isfinite(f.heldout_after_) else "n/a")
-    return f"| `{recording_name(d.series.name)}` | {len(d.legs)} | {legs} | {ho} | {f.chi2_red_:.2f} |"
+    ref = f"{'documented' if d.motion.documented else 'assumed'} {100 * d.motion.leg_m:.0f} cm"
+    return f"| `{recording_name(d.series.name)}` | {ref} | {len(d.legs)} | {legs} | {ho} | {f.chi2_red_:.2f} |"
 
 
 def render(diags: list[SensorDiagnosis], plots: Path) -> str:
@@ -103,12 +104,14 @@ def render(diags: list[SensorDiagnosis], plots: Path) -> str:
            "| repeated readings | range updates /s |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     out += [file_row(d) for d in ds]
-    out += ["", "### Legs against the documented 20 cm", "",
+    out += ["", "### Legs against their 20 cm, documented or assumed", "",
             "Each leg: length with the paper's Q / with the file's own fitted scale / with the scale pooled over "
-            "all files (cm). Held-out: leave-one-leg-out RMS error of the leg length (cm), paper's Q → fitted. "
+            "all files (cm). Leg length: documented where the maker's plan gives it, assumed where the file is "
+            "undocumented. Held-out: leave-one-leg-out RMS error of the leg length (cm), paper's Q → fitted. "
             "χ²_red: scatter of the legs within the file against the 10 % hand tolerance.", "",
-            "| file | legs | lengths (cm): paper Q / own scale / pooled scale | held-out RMS (cm) | χ²_red |",
-            "|---|---|---|---|---|"]
+            "| file | leg length | legs | lengths (cm): paper Q / own scale / pooled scale | held-out RMS (cm) "
+            "| χ²_red |",
+            "|---|---|---|---|---|---|"]
     out += [legs_row(d, pooled.scale) for d in ds if d.motion is not None and d.legs and d.scale_fit is not None]
     out += ["", "### Across files", "",
             "| axis | files | pooled scale | rad/count | spread (sd / mean) | min – max | χ²_red between files "
@@ -137,7 +140,8 @@ def render(diags: list[SensorDiagnosis], plots: Path) -> str:
                 "Per file: " + ", ".join(f"`{recording_name(k)}` {100 * b:.1f} → {100 * a_:.1f}"
                                          for k, (b, a_) in pooled.heldout_per_file.items()) + " cm."]
     out += ["", "Plots (paper model against the extended one, per file) and per-file reports: `" + str(plots) +
-            "/<file>/` (`<file>_sensor.png`, `report.md`, `<file>.json`).", "", END]
+            "/<file>/` (`<file>_sensor.png`, `report.md`, `report.html` with the plot embedded, `<file>.json`).",
+            "", END]
     return "\n".join(out)
 
 

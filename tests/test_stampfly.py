@@ -13,6 +13,7 @@ import functools
 import gzip
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,8 @@ from companion.config import load_config
 from companion.recording import load_recording
 from companion.sensor_diagnose import (
     SensorDiagnosis,
+    markdown_report,
+    plot_diagnosis,
     pool_scales,
     run_sensor_cli,
     run_sensor_diagnosis,
@@ -322,3 +325,49 @@ def test_the_sensor_report_is_also_one_offline_html_page(tmp_path):
     p = scale["parameters"]
     q = load_config().flow_sensor.q_rad_per_count * (p["scale_x"] + p["scale_y"]) / 2
     assert f"In the config, set [flow_sensor] q_rad_per_count = {q:.4g}." in first
+
+
+def test_legs_say_whether_their_length_is_documented_or_assumed_and_every_sideways_value_is_measured(diags):
+    """Issue 14: the legs' heading said "documented 20 cm" for files whose legs are assumed, and the
+    sideways column was all nan for files that turn corners without pausing (square_30cm)."""
+    for name in MOVING:
+        d = diags[name]
+        ref = "documented" if d.motion.documented else "assumed"
+        md = markdown_report(d, "x.png")
+        assert f"## Legs ({ref} 20 cm; " in md
+        assert ("documented" if ref == "assumed" else "assumed") + " 20 cm" not in md
+        for lg in d.legs:  # measured for every leg; a hand carries the sensor straight within a few cm
+            assert math.isfinite(lg.cross_m) and abs(lg.cross_m) < 0.05, (name, lg)
+        assert "nan" not in md.split("## Legs", 1)[1]
+    assert not diags["square_30cm.csv"].motion.documented
+    assert diags["flow_test_square_01_final.csv"].motion.documented
+
+
+def test_the_sensor_figure_says_what_its_panels_show_with_units(diags, tmp_path, monkeypatch):
+    """Issue 14: a panel was titled "y: running sum of rotation-compensated flow x range"; the legend
+    said "documented 20 cm leg end" for assumed legs."""
+    from matplotlib.figure import Figure
+
+    saved: list[Figure] = []
+    monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: saved.append(self))
+    plot_diagnosis(diags["square_30cm.csv"], tmp_path / "x.png")
+    fig = saved[0]
+    titles = [ax.get_title() for ax in fig.axes]
+    assert titles[:2] == ["x position from the flow (gyro rotation removed, times range), cm",
+                          "y position from the flow (gyro rotation removed, times range), cm"]
+    assert not any("running sum" in t for t in titles)
+    assert "reconstructed legs against the assumed length (+-10 % shaded), cm" in titles
+    legends = [t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts()]
+    assert "assumed 20 cm leg end" in legends and not any("documented" in t for t in legends)
+
+
+def test_sensor_only_diagnose_says_where_it_wrote_and_gives_counts_units(tmp_path, capsys):
+    args = build_parser().parse_args(["diagnose", str(_path("square_30cm.csv")), "--sensor-config", str(MAP),
+                                      "--json", str(tmp_path / "x.json"), "--report", str(tmp_path / "rep")])
+    assert run_sensor_cli(args) == 0
+    out = capsys.readouterr().out
+    assert f"json: {tmp_path / 'x.json'}" in out
+    assert f"report: {tmp_path / 'rep' / 'report.md'}" in out and f"report: {tmp_path / 'rep' / 'report.html'}" in out
+    line = next(x for x in out.splitlines() if "missing_flow_readings" in x)
+    assert re.search(r"count=\d+(\.\d+)? readings, ", line) and "in_gaps=0 readings" in line
+    assert re.search(r"long_holds=\d+ holds", out) and re.search(r"scale_x=[\d.]+\+-[\d.]+ x nominal Q", out)
