@@ -13,6 +13,7 @@ import argparse
 import datetime as dt
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -324,7 +325,8 @@ def run_cli(args: argparse.Namespace) -> int:
     """``info``: print the summary of ``args.recording``; ``args.json``: also write it there."""
     if getattr(args, "json", None):
         check_output(args.json, "--json")
-    rec = load_recording(args.recording, sensor_config=getattr(args, "sensor_config", None))
+    rec = load_recording(args.recording, sensor_config=getattr(args, "sensor_config", None),
+                         progress=sys.stderr.isatty())
     summary = summarise(rec)
     print(format_summary(summary))
     if getattr(args, "json", None):

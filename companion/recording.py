@@ -25,6 +25,7 @@ from typing import BinaryIO
 import numpy as np
 
 from companion.errors import RecordingError
+from companion.progress import Stages
 
 
 @dataclass
@@ -190,7 +191,9 @@ def load_recording(path: str | Path, *, sensor_config: str | Path | None = None,
     """Read any supported recording into columns: .tlog, DataFlash .bin, PX4 .ulg, or a CSV
     described by a sensor column map (``sensor_config``), each also gzip-compressed (``.gz``).
     The format comes from the suffix (any case) under a trailing ``.gz``; anything else is read
-    as a .tlog. ``progress``: a progress bar on stderr while a long .tlog is read."""
+    as a .tlog. ``progress``: a progress bar on stderr while a long recording is read (a .tlog:
+    the reader's own, for files over ``tlog_reader.PROGRESS_MIN_BYTES``; the importers: by stage,
+    once the import has lasted ``companion.progress.DELAY_S``)."""
     p = Path(path)
     if not p.exists():
         raise RecordingError(f"recording not found: {p}")
@@ -200,17 +203,23 @@ def load_recording(path: str | Path, *, sensor_config: str | Path | None = None,
     if sensor_config is not None or suffix == ".csv":
         if sensor_config is None:
             raise RecordingError(f"{p.name}: a CSV needs --sensor-config (a column map in configs/sensors/)")
+        from companion.importers.csv_columns import STAGES as CSV_STAGES
         from companion.importers.csv_columns import read_csv
 
-        return read_csv(p, sensor_config)
+        with Stages(progress, f"importing {p.name}", len(CSV_STAGES)) as done:
+            return read_csv(p, sensor_config, progress=done)
     if suffix == ".bin":
+        from companion.importers.dataflash import STAGES as BIN_STAGES
         from companion.importers.dataflash import read_dataflash
 
-        return read_dataflash(p)
+        with Stages(progress, f"importing {p.name}", len(BIN_STAGES)) as done:
+            return read_dataflash(p, progress=done)
     if suffix == ".ulg":
+        from companion.importers.ulog import STAGES as ULOG_STAGES
         from companion.importers.ulog import read_ulog
 
-        return read_ulog(p)
+        with Stages(progress, f"importing {p.name}", len(ULOG_STAGES)) as done:
+            return read_ulog(p, progress=done)
     from companion.tlog_reader import read_tlog
 
     return read_tlog(p, progress=progress)

@@ -38,6 +38,7 @@ Times in the report are seconds from the first record of the recording.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -1753,7 +1754,8 @@ def run_sensor_cli(args: Any) -> int:
     from companion.config import load_config
     from companion.recording import load_recording
 
-    rec = load_recording(args.recording, sensor_config=getattr(args, "sensor_config", None))
+    rec = load_recording(args.recording, sensor_config=getattr(args, "sensor_config", None),
+                         progress=sys.stderr.isatty())
     cfg = load_config(getattr(args, "config", None))
     report_dir = getattr(args, "report", None)
     rep = diagnose_sensor(rec, cfg, report_dir=Path(report_dir) if report_dir else None,

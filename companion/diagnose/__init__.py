@@ -76,7 +76,7 @@ def run_cli(args: argparse.Namespace) -> int:
 
     t_start = time.perf_counter()
     cfg = load_config(args.config)
-    rec = load_recording(args.recording)
+    rec = load_recording(args.recording, progress=sys.stderr.isatty())  # a bar on a terminal only
     if not has_commands(rec) and ("OPTICAL_FLOW" in rec or "OPTICAL_FLOW_RAD" in rec):
         return _sensor_mode(args)
     from companion.diagnose.diagnosis import STAGES, diagnose

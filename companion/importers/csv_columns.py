@@ -39,6 +39,7 @@ import numpy as np
 
 from companion.config import bind, read_toml
 from companion.errors import ConfigError, RecordingError
+from companion.progress import StageCallback
 from companion.recording import MessageTable, Recording, open_recording
 
 GRAVITY_M_S2 = 9.80665
@@ -200,18 +201,25 @@ def load_column_map(path: str | Path) -> ColumnMap:
 # The CSV
 
 
-def read_csv(path: str | Path, sensor_config_path: str | Path) -> Recording:
+#: the stages ``read_csv`` reports to its ``progress`` callback, in order
+STAGES = ("read", "columns", "tables")
+
+
+def read_csv(path: str | Path, sensor_config_path: str | Path, *, progress: StageCallback = None) -> Recording:
     """Read a CSV log described by a column map into MAVLink-named tables (module docstring).
 
     Raises ``ConfigError`` for a bad column map and ``RecordingError`` (one line, naming the
     column and line) for a missing column, a non-numeric or non-finite value, a ragged line, or
-    time that runs backwards.
+    time that runs backwards. ``progress`` is called with each of ``STAGES`` as it ends
+    (``companion.progress.Stages``).
     """
+    done = progress or (lambda _stage: None)
     cmap = load_column_map(sensor_config_path)
     p = Path(path)
     if not p.is_file():
         raise RecordingError(f"recording not found: {p}")
     header, rows, linenos, notes = _read_rows(p)
+    done(STAGES[0])
 
     gyro = cmap.gyro_columns()
     accel = cmap.accel_columns()
@@ -228,6 +236,7 @@ def read_csv(path: str | Path, sensor_config_path: str | Path) -> Recording:
                                  f"CSV header")
     cols = {name: _numeric(p, rows, linenos, index[name], name) for name, _ in wanted}
     n = len(rows)
+    done(STAGES[1])
 
     t_s = cols[cmap.time.column] * TIME_UNITS_S[cmap.time.unit]
     steps = np.diff(t_s)
@@ -315,6 +324,7 @@ def read_csv(path: str | Path, sensor_config_path: str | Path) -> Recording:
     if unused:
         notes.append(f"{len(unused)} columns not in the map were ignored ({', '.join(unused[:4])}"
                      f"{', ...' if len(unused) > 4 else ''})")
+    done(STAGES[2])
     return Recording(path=str(p), tables=tables, source_format="csv", notes=notes, profile_hint="paper")
 
 

@@ -34,12 +34,13 @@ import contextlib
 import io
 import os
 import sys
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
 
 from companion.errors import RecordingError
+from companion.progress import StageCallback
 from companion.recording import MessageTable, Recording, read_recording_bytes
 
 #: standard gravity used by ArduPilot (GRAVITY_MSS) for RAW_IMU milli-g
@@ -83,14 +84,21 @@ _DF_TYPES: dict[str, tuple[str | tuple[str, tuple[int]], float | None]] = {
 Columns = dict[str, np.ndarray]
 
 
-def read_dataflash(path: str | Path) -> Recording:
+#: the stages ``read_dataflash`` reports to its ``progress`` callback, in order
+STAGES = ("read", "indexed", "decoded", "tables")
+
+
+def read_dataflash(path: str | Path, *, progress: StageCallback = None) -> Recording:
     """Read an ArduPilot DataFlash log into MAVLink-named tables (see the module table).
 
     Raises ``RecordingError`` (one line) when the file is missing, is not a DataFlash log, or
     holds no usable optical flow (OF). Missing gyro, range or attitude are skipped with a note.
+    ``progress`` is called with each of ``STAGES`` as it ends (``companion.progress.Stages``).
     """
+    done = progress or (lambda _stage: None)
     p = Path(path)
     raw = read_recording_bytes(p)  # a .bin.gz: decompressed in memory
+    done(STAGES[0])
     data = np.frombuffer(raw, dtype=np.uint8)
     if data.size == 0:
         raise RecordingError(f"{p.name}: empty file, not a DataFlash log")
@@ -99,16 +107,17 @@ def read_dataflash(path: str | Path) -> Recording:
             f"{p.name}: not an ArduPilot DataFlash log (no 0xA3 0x95 FMT header at the start)")
     try:
         with np.errstate(invalid="ignore", over="ignore"):  # damaged floats (NaN, sNaN, inf) pass through
-            return _read(p, raw, data)
+            return _read(p, raw, data, done)
     except RecordingError as exc:
         if str(exc).startswith(p.name):
             raise
         raise RecordingError(f"{p.name}: {exc}") from None
 
 
-def _read(p: Path, raw: bytes, data: np.ndarray) -> Recording:
+def _read(p: Path, raw: bytes, data: np.ndarray, done: Callable[[str], None]) -> Recording:
     """``read_dataflash`` after the file checks (``data``: ``raw`` as uint8)."""
-    messages, skipped, notes = _index(p, raw, data)
+    messages, skipped, notes = _index(p, raw, data, done)
+    done(STAGES[2])
 
     def take(name: str) -> tuple[Columns, np.ndarray] | None:
         """The decoded messages ``name``, or None (with a note) when their layout lacks a field
@@ -162,6 +171,7 @@ def _read(p: Path, raw: bytes, data: np.ndarray) -> Recording:
         add(*_rate_table(*rate))
 
     assign_records(tables, order_keys, notes)
+    done(STAGES[3])
     return Recording(
         path=str(p),
         tables=tables,
@@ -175,7 +185,7 @@ def _read(p: Path, raw: bytes, data: np.ndarray) -> Recording:
 # --------------------------------------------------------------------------- file decoding
 
 
-def _index(p: Path, raw: bytes, data: np.ndarray
+def _index(p: Path, raw: bytes, data: np.ndarray, done: Callable[[str], None]
            ) -> tuple[dict[str, tuple[Columns, np.ndarray]], int, list[str]]:
     """Index the log's bytes ``raw`` with pymavlink's DFReader and decode the messages this
     importer uses (``data``: ``raw`` as uint8).
@@ -225,6 +235,7 @@ def _index(p: Path, raw: bytes, data: np.ndarray
             reader = IndexOnly(raw)
     except Exception as exc:  # DFReader raises bare Exceptions on malformed FMT records
         raise RecordingError(f"{p.name}: DataFlash log could not be indexed ({exc})") from None
+    done(STAGES[1])
     formats = dict(reader.formats)
     offsets = [np.asarray(o, dtype=np.int64) for o in reader.offsets]
     used = 0

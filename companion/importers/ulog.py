@@ -47,6 +47,7 @@ from companion.importers.dataflash import (
     nearest_index,
     quaternion_to_euler,
 )
+from companion.progress import StageCallback
 from companion.recording import MessageTable, Recording, open_recording
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"
@@ -76,12 +77,18 @@ _REQUIRED: dict[str, tuple[str, ...]] = {
 }
 
 
-def read_ulog(path: str | Path) -> Recording:
+#: the stages ``read_ulog`` reports to its ``progress`` callback, in order
+STAGES = ("read", "parsed", "tables")
+
+
+def read_ulog(path: str | Path, *, progress: StageCallback = None) -> Recording:
     """Read a PX4 ULog into MAVLink-named tables (see the module table).
 
     Raises ``RecordingError`` (one line) when the file is missing, is not a ULog, or holds no
     optical-flow topic. Missing gyro, range or attitude topics are skipped with a note.
+    ``progress`` is called with each of ``STAGES`` as it ends (``companion.progress.Stages``).
     """
+    done = progress or (lambda _stage: None)
     p = Path(path)
     with open_recording(p) as fh:  # a .ulg.gz: decompressed in memory
         head = fh.read(16)
@@ -91,9 +98,13 @@ def read_ulog(path: str | Path) -> Recording:
         if problem:
             raise RecordingError(f"{p.name}: damaged ULog definitions section ({problem})")
         fh.seek(0)
+        done(STAGES[0])
         topics, notes = _load(p, fh)
+        done(STAGES[1])
     with np.errstate(invalid="ignore", over="ignore"):  # damaged floats (NaN, sNaN, inf) pass through
-        return _tables(p, topics, notes)
+        rec = _tables(p, topics, notes)
+    done(STAGES[2])
+    return rec
 
 
 def _tables(p: Path, topics: dict[tuple[str, int], Columns], notes: list[str]) -> Recording:
