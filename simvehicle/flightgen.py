@@ -57,8 +57,9 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from companion.config import CONFIG_DIR
+
 GENERATOR_VERSION = 3
-ROOT = Path(__file__).resolve().parent.parent
 
 EFFECT_NAMES = ("linear_drag", "quadratic_drag", "gyro_bias", "flow_scale", "flow_delay", "flow_yaw_misalignment",
                 "attitude_dynamics", "range_offset", "wind_force", "attitude_delay", "flow_rotation_gain",
@@ -387,7 +388,7 @@ def draw_spec(seed: int, *, clean_share: float = 0.2, ardupilot_share: float = 0
     duration = draw_duration(rng)
     warmup = _u(rng, 2.0, 8.0)
     ardupilot = rng.random() < ardupilot_share
-    base = ROOT / "configs" / ("ardupilot_sitl.toml" if ardupilot else "paper.toml")
+    base = "configs/" + ("ardupilot_sitl.toml" if ardupilot else "paper.toml")  # shipped, as companion/configs
     g = 9.80665 if ardupilot else 9.81
     vehicle = Vehicle(mass_kg=_u(rng, 0.5, 3.0), gravity_m_s2=g, omega_p_nominal=_u(rng, 4.0, 15.0),
                       zeta_nominal=_u(rng, 0.5, 1.2), heading_rad=_u(rng, -math.pi, math.pi),
@@ -401,7 +402,7 @@ def draw_spec(seed: int, *, clean_share: float = 0.2, ardupilot_share: float = 0
     sensors = Sensors(profile="ardupilot" if ardupilot else "paper", q_rad_per_count=q, frame_rate_hz=50.0,
                       imu_lead_s=_u(rng, 0.0, 0.005), att_lead_s=_u(rng, 0.0, 0.005),
                       range_lead_s=_u(rng, 0.0, 0.005), companion_proc_s=_u(rng, 0.0005, 0.003),
-                      range_min_m=rmin, range_max_m=rmax, base_config=str(base.relative_to(ROOT)))
+                      range_min_m=rmin, range_max_m=rmax, base_config=base)
     effects = draw_effects(rng, vehicle, clean_share)
     noise = draw_noise(rng)
     loss = draw_loss(rng, warmup, duration)
@@ -912,7 +913,7 @@ def _set_key(text: str, section: str, key: str, value: str) -> str:
 
 def nominal_config_text(spec: FlightSpec) -> str:
     """The config the user believes: the base file with the vehicle's nominal values."""
-    text = (ROOT / spec.sensors.base_config).read_text()
+    text = (CONFIG_DIR.parent / spec.sensors.base_config).read_text()
     head = (f"# Nominal model of generated recording seed {spec.seed} (simvehicle/flightgen.py), copied from "
             f"{spec.sensors.base_config}\n# with the drawn airframe, attitude loop, frame rate and Q.\n")
     for section, key, value in (("airframe", "mass_kg", spec.vehicle.mass_kg),
