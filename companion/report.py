@@ -119,6 +119,29 @@ class Unexplained:
         return out
 
 
+@dataclass(frozen=True)
+class Action:
+    """One thing to set, in the user's terms (``diagnose --json``'s ``actions``).
+
+    ``system``: ``"companion"`` (a key of the companion's TOML config, ``section.key``),
+    ``"ardupilot"`` or ``"px4"`` (an autopilot parameter, in that autopilot's own unit);
+    ``value`` the value to set, computed from the fit; ``sigma`` its 1-sigma uncertainty
+    propagated from the fit's (NaN when the fit gives none); ``because`` the effect it undoes.
+    ``unit`` and ``note`` are for human reports only (not in the JSON)."""
+
+    system: str
+    parameter: str
+    value: float
+    sigma: float
+    because: str
+    unit: str = ""
+    note: str = ""
+
+    def to_json(self) -> dict[str, Any]:
+        return {"system": self.system, "parameter": self.parameter, "value": _num(self.value),
+                "sigma": _num(self.sigma), "because": self.because}
+
+
 @dataclass
 class Report:
     recording: str
@@ -130,6 +153,8 @@ class Report:
     mode: str = "flight"  # "flight" (closed loop) or "sensor" (sensor-only)
     #: the first line a reader needs, in plain words (``diagnose`` writes it)
     headline: str = ""
+    #: what to set, per finding (``companion.advice.actions``)
+    actions: list[Action] = field(default_factory=list)
 
     def significant(self) -> list[Finding]:
         return [f for f in self.findings if f.significant]
@@ -143,6 +168,7 @@ class Report:
             "findings": [f.to_json() for f in self.findings],
             "unexplained": [u.to_json() for u in self.unexplained],
             "notes": list(self.notes),
+            "actions": [a.to_json() for a in self.actions],
         }
 
     def write_json(self, path: str | Path) -> None:

@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 from scipy import signal
 
+from companion.advice import actions, recorded_parameters
 from companion.config import Config
 from companion.errors import RecordingError
 from companion.profiles import GYRO_MESSAGES, Profile, detect_profile, flow_columns
@@ -1357,6 +1358,7 @@ def _build_report(rec: Recording, cfg: Config, d: SensorDiagnosis, st: SensorDia
                                                              "of the hand tolerance"))
     if np.isfinite(d.bias.before):
         rep.baseline_rms["still_scene_angle_rad"] = d.bias.before
+    rep.actions = actions(rep, profile=s.profile, q_rad_per_count=q, current=recorded_parameters(rec))
     return rep
 
 

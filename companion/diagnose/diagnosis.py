@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.advice import actions, recorded_parameters
 from companion.config import Config
 from companion.diagnose.attitude import AttitudeProblem
 from companion.diagnose.channels import FlightData, extract
@@ -308,6 +309,8 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
         report.notes.extend(res.selector.notes)
     report.findings.sort(key=lambda f: (not f.significant, -(f.fit.improvement_pct if f.fit else 0.0)))
     report.headline = headline(report)
+    report.actions = actions(report, profile=data.profile, q_rad_per_count=cfg.flow_sensor.q_rad_per_count,
+                             current=recorded_parameters(rec))
     step(STAGES[4])
     timings["report_s"] = time.perf_counter() - t
     return Diagnosis(data, cfg, report, results, ap, gp, fp, fstate, timings)
