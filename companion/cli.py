@@ -77,6 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
                       help="write the report into this folder: report.md with its PNG plots, and report.html, "
                            "the same as one page with the plots embedded (opens offline), led by what differs, "
                            "how sure, and what to change in the config")
+    diag.add_argument("--model-out", metavar="TOML",
+                      help="write the fitted model: the nominal config plus an [effects.<name>] table per "
+                           "significant finding (uncertainties as comments), loadable with --config; the vehicle's "
+                           "properties are fitted on the first half of the flight, so that 'python -m simvehicle "
+                           "refly' can judge the model on the second (docs/refly.md)")
 
     fleet = sub.add_parser("fleet", help="diagnose every recording of a fleet on Dask (one task per file): "
                                          "a table, the reports and an HTML summary")

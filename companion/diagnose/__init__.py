@@ -25,9 +25,9 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from companion.config import load_config
-from companion.errors import RecordingError
-from companion.recording import load_recording
+from companion.config import Config, load_config
+from companion.errors import RecordingError, UsageError, check_output, writing
+from companion.recording import Recording, load_recording
 from companion.report import Report
 
 if TYPE_CHECKING:
@@ -70,7 +70,12 @@ def _sensor_mode(args: argparse.Namespace) -> int:
 
 def run_cli(args: argparse.Namespace) -> int:
     """Entry point of ``python -m companion diagnose`` (arguments declared in companion/cli.py)."""
+    model_out = getattr(args, "model_out", None)
+    if model_out:
+        check_output(model_out, "--model-out")
     if getattr(args, "sensor_config", None):
+        if model_out:
+            raise UsageError("--model-out needs a closed-loop flight (with commands), not a sensor-only recording")
         return _sensor_mode(args)
     from companion.diagnose.channels import has_commands
 
@@ -78,6 +83,9 @@ def run_cli(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     rec = load_recording(args.recording, progress=sys.stderr.isatty())  # a bar on a terminal only
     if not has_commands(rec) and ("OPTICAL_FLOW" in rec or "OPTICAL_FLOW_RAD" in rec):
+        if model_out:
+            raise UsageError(f"{Path(args.recording).name}: --model-out needs a closed-loop flight; this recording has "
+                             "no commanded attitude")
         return _sensor_mode(args)
     from companion.diagnose.diagnosis import STAGES, diagnose
 
@@ -106,13 +114,40 @@ def run_cli(args: argparse.Namespace) -> int:
 
         out = write_report(diag, args.report)
         html_out = _write_html(diag, out)
+    if model_out:
+        with writing("--model-out", model_out):
+            write_model_out(rec, cfg, diag, model_out, profile=args.profile)
     print(summary(report))
     if args.json:
         print(f"json: {args.json}")
+    if model_out:
+        print(f"model: {model_out} (load it with --config; python -m simvehicle refly {args.recording} --config "
+              f"{model_out})")
     if args.report:
         print(f"report: {out}")
         print(f"report: {html_out} (one page, plots embedded)")
     return 0
+
+
+def write_model_out(rec: Recording, cfg: Config, whole: Diagnosis, path: str | Path, *,
+                    profile: str | None = None) -> Path:
+    """``--model-out``: the fitted model of ``companion.fitted_model``. The vehicle's properties are
+    fitted on the first half of the flight's usable frames (a second diagnosis of that half), the
+    wind windows come from ``whole``; a flight too short to split is fitted whole."""
+    from companion.diagnose.diagnosis import diagnose
+    from companion.fitted_model import fitted_findings, heldout_split_s, model_toml, write_model
+
+    t = whole.data.t_s
+    split = heldout_split_s(t)
+    span = (float(t[0]), float(t[-1]))
+    if split is None:
+        fit, window = whole.report, None
+    else:
+        window = (span[0], split)
+        fit = diagnose(rec, cfg, profile=profile, window_s=window).report
+    text = model_toml(cfg, fitted_findings(fit, whole.report), recording=Path(rec.path).name, fit_window_s=window,
+                      span_s=span)
+    return write_model(path, text)
 
 
 def summary(report: Report) -> str:

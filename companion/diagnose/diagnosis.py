@@ -34,6 +34,7 @@ from companion.diagnose.groups import (
 from companion.diagnose.locate import Interval, conditions, effect_windows, excess_windows
 from companion.diagnose.select import Comparison, Group, ModelScore, Selector, Settings
 from companion.diagnose.sparse import SparseFit, Term, sparse_fit
+from companion.errors import RecordingError
 from companion.recording import Recording
 from companion.report import Finding, Fit, Report, Unexplained, Window
 
@@ -250,14 +251,22 @@ STAGES = ("signals", "attitude loop", "gyro", "flow and force", "report")
 
 
 def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
-             settings: Settings | None = None, progress: Callable[[str], None] | None = None) -> Diagnosis:
+             settings: Settings | None = None, progress: Callable[[str], None] | None = None,
+             window_s: tuple[float, float] | None = None) -> Diagnosis:
     """Diagnose a closed-loop recording against the nominal model ``cfg`` (see the package docs).
-    ``progress(stage)`` is called as each of ``STAGES`` is done (a progress bar)."""
+    ``progress(stage)`` is called as each of ``STAGES`` is done (a progress bar). ``window_s``:
+    use only the frames in [start, end) (report time, s), e.g. the half of a flight a fitted model
+    is made from (``--model-out``)."""
     settings = settings or Settings()
     step = progress or (lambda _stage: None)
     timings: dict[str, float] = {}
     t = time.perf_counter()
     data = extract(rec, cfg, profile)
+    if window_s is not None:
+        data = data.take((data.t_s >= window_s[0]) & (data.t_s < window_s[1]))
+        if data.n == 0:
+            raise RecordingError(f"{Path(rec.path).name}: no usable frame in {window_s[0]:.1f}-{window_s[1]:.1f} s")
+        data.notes.append(f"fitted on {window_s[0]:.1f}-{window_s[1]:.1f} s only")
     timings["extract_s"] = time.perf_counter() - t
     step(STAGES[0])
     t0 = float(data.t_s[0])
