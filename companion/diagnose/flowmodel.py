@@ -113,6 +113,50 @@ class _Cache:
         return value
 
 
+class _Geometry:
+    """The force channel's flow-odometry pieces for one sensor geometry: ``dv`` and ``dx`` at once,
+    the form-drag regressor ``dq`` on first use (it needs the odometry's rate over the whole
+    flight, the costliest part, and most residuals have no form drag)."""
+
+    def __init__(self, fp: FlowProblem, X: np.ndarray) -> None:
+        self._fp = fp
+        self._X = X
+        dt = fp._dt
+        IX = np.zeros_like(X)
+        IX[:, 1:] = np.cumsum(0.5 * (X[:, 1:] + X[:, :-1]) * dt, axis=1)  # used within segments
+        k0, k1, d0, d1 = fp._k0, fp._k1, fp._den0, fp._den1
+        self.dv = fp._bavg(X, k1, d1) - fp._bavg(X, k0, d0)
+        self.dx = fp._bavg(IX, k1, d1) - fp._bavg(IX, k0, d0)
+        self._dq: np.ndarray | None = None
+
+    def dq(self) -> np.ndarray:
+        if self._dq is None:
+            self._dq = self._form_drag_regressor()
+        return self._dq
+
+    def _form_drag_regressor(self) -> np.ndarray:
+        fp, X = self._fp, self._X
+        dt = fp._dt
+        # the form-drag regressor: integral of v |v|, v the odometry's change over +-h frames (the
+        # boundary-averaging span): a frame-to-frame derivative of quantized odometry is a train of
+        # spikes, and squared they would swamp the drag
+        v = np.zeros_like(X)
+        h = fp.h
+        for a, b in fp.data.segments():
+            if b - a > 2 * h + 1:
+                k = np.arange(a, b)
+                lo = np.clip(k - h, a, b - 1)
+                hi = np.clip(k + h, a, b - 1)
+                v[:, a:b] = (X[:, hi] - X[:, lo]) / (fp.t[hi] - fp.t[lo])
+        q = v * np.abs(v)
+        Q = np.zeros_like(X)  # integral of v|v| (as X is of v); the window's boundary means of its
+        Q[:, 1:] = np.cumsum(0.5 * (q[:, 1:] + q[:, :-1]) * dt, axis=1)  # integral, as for dx
+        IQ = np.zeros_like(X)
+        IQ[:, 1:] = np.cumsum(0.5 * (Q[:, 1:] + Q[:, :-1]) * dt, axis=1)
+        k0, k1, d0, d1 = fp._k0, fp._k1, fp._den0, fp._den1
+        return fp._bavg(IQ, k1, d1) - fp._bavg(IQ, k0, d0)
+
+
 class FlowProblem:
     """The two translational channels of one flight, ready to evaluate for any parameters.
 
@@ -204,6 +248,7 @@ class FlowProblem:
         q, _ = np.linalg.qr(basis)
         self.P = np.eye(self.L1) - q @ q.T
         self._Amid = 0.5 * (self.A[1:] + self.A[:-1])
+        self._dt = np.diff(t)
         self._first = np.zeros(n, dtype=bool)
         self._seg_t0 = np.zeros(n)
         self._seg_last = np.zeros(n, dtype=int)
@@ -214,6 +259,8 @@ class FlowProblem:
         # windowed constants of the flow channel
         W = self.flow.idx
         self._Phiw = self.Phi[:, W]
+        self._Rw = self.R[:, W]  # constant gathers of every flow-residual evaluation
+        self._RAw = self.RA[:, W]
         self._rot_cache = _Cache()
         self._trans_cache = _Cache()
         self._vel_cache = _Cache(4)
@@ -260,9 +307,8 @@ class FlowProblem:
     def _rotation_at(self, delay_s: float) -> np.ndarray:
         """R(t - delay) at the flow windows' frames, (2, n_windows, L1): cubic spline through the
         recorded attitude of each segment (held at the segment's ends)."""
-        W = self.flow.idx
         if delay_s == 0.0:
-            return self.R[:, W]
+            return self._Rw
         return self._rot_cache.get((float(delay_s),), lambda: self._rotation_at_uncached(delay_s))
 
     def _rotation_at_uncached(self, delay_s: float) -> np.ndarray:
@@ -314,7 +360,7 @@ class FlowProblem:
     def _cum(self, f: np.ndarray) -> np.ndarray:
         """Trapezoidal integral of f over time, restarting at each segment (constant offsets are
         irrelevant: every use is within one segment)."""
-        inc = 0.5 * (f[..., 1:] + f[..., :-1]) * np.diff(self.t)
+        inc = 0.5 * (f[..., 1:] + f[..., :-1]) * self._dt
         inc[..., self._first[1:]] = 0.0
         out = np.zeros_like(f)
         out[..., 1:] = np.cumsum(inc, axis=-1)
@@ -326,7 +372,7 @@ class FlowProblem:
         if len(W) == 0:
             return np.zeros((2, 0, self.L1))
         kx, ky, yaw, delay, offset = p[0], p[1], p[2], p[3], p[4]
-        body = p[8] * self._rotation_at(delay) + p[10] * self.RA[:, W] - self.model_translation(offset, delay)
+        body = p[8] * self._rotation_at(delay) + p[10] * self._RAw - self.model_translation(offset, delay)
         c, s = math.cos(yaw), math.sin(yaw)
         e = self._Phiw.copy()
         e[0] -= (c * body[0] + s * body[1]) / kx
@@ -356,11 +402,14 @@ class FlowProblem:
         X[:, 1:] = np.cumsum(inc, axis=1)
         return X, Y
 
-    def force_parts(self, p: np.ndarray, start_s: float = math.nan, end_s: float = math.nan) -> dict[str, np.ndarray]:
+    def force_parts(self, p: np.ndarray, start_s: float = math.nan, end_s: float = math.nan, *,
+                    with_dq: bool = True) -> dict[str, np.ndarray]:
         """Boundary-averaged pieces of the force balance (each (2, n_windows), m/s per window):
         ``dv`` flow velocity change, ``dv_tilt`` what the tilt explains, ``dx`` the window's
-        averaged displacement change (drag regressor, m), ``dt1`` the wind regressor (s)."""
-        dv, dx, dq = self._geometry_parts(p)
+        averaged displacement change (drag regressor, m), ``dq`` the form-drag regressor (absent
+        when ``with_dq`` is False: the costliest piece, and a residual without form drag does not
+        need it), ``dt1`` the wind regressor (s)."""
+        geo = self._geometry_parts(p)
         k0, k1, d0, d1 = self._k0, self._k1, self._den0, self._den1
         h = self.h
         t = self.t
@@ -368,42 +417,20 @@ class FlowProblem:
         def ravg(k: np.ndarray, den: np.ndarray) -> np.ndarray:
             return (ramp_integral(t[k + h], start_s, end_s) - ramp_integral(t[k - h], start_s, end_s)) / den
 
-        return {
-            "dv": dv,
+        parts = {
+            "dv": geo.dv,
             "dv_tilt": self._dv_tilt,
-            "dx": dx,
-            "dq": dq,
+            "dx": geo.dx,
             "dt1": np.broadcast_to(ravg(k1, d1) - ravg(k0, d0), (2, len(k0))).copy(),
             "span_s": self._span,
         }
+        if with_dq:
+            parts["dq"] = geo.dq()
+        return parts
 
-    def _geometry_parts(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _geometry_parts(self, p: np.ndarray) -> _Geometry:
         key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8], p[10]))
-        return self._geo_cache.get(key, lambda: self._geometry_uncached(p))
-
-    def _geometry_uncached(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        X, _ = self.flow_velocity(p)
-        IX = np.zeros_like(X)
-        IX[:, 1:] = np.cumsum(0.5 * (X[:, 1:] + X[:, :-1]) * np.diff(self.t), axis=1)  # used within segments
-        # the form-drag regressor: integral of v |v|, v the odometry's change over +-h frames (the
-        # boundary-averaging span): a frame-to-frame derivative of quantized odometry is a train of
-        # spikes, and squared they would swamp the drag
-        v = np.zeros_like(X)
-        h = self.h
-        for a, b in self.data.segments():
-            if b - a > 2 * h + 1:
-                k = np.arange(a, b)
-                lo = np.clip(k - h, a, b - 1)
-                hi = np.clip(k + h, a, b - 1)
-                v[:, a:b] = (X[:, hi] - X[:, lo]) / (self.t[hi] - self.t[lo])
-        q = v * np.abs(v)
-        Q = np.zeros_like(X)  # integral of v|v| (as X is of v); the window's boundary means of its
-        Q[:, 1:] = np.cumsum(0.5 * (q[:, 1:] + q[:, :-1]) * np.diff(self.t), axis=1)  # integral, as for dx
-        IQ = np.zeros_like(X)
-        IQ[:, 1:] = np.cumsum(0.5 * (Q[:, 1:] + Q[:, :-1]) * np.diff(self.t), axis=1)
-        k0, k1, d0, d1 = self._k0, self._k1, self._den0, self._den1
-        return (self._bavg(X, k1, d1) - self._bavg(X, k0, d0), self._bavg(IX, k1, d1) - self._bavg(IX, k0, d0),
-                self._bavg(IQ, k1, d1) - self._bavg(IQ, k0, d0))
+        return self._geo_cache.get(key, lambda: _Geometry(self, self.flow_velocity(p)[0]))
 
     def _bavg(self, Z: np.ndarray, k: np.ndarray, den: np.ndarray) -> np.ndarray:
         """Mean of the derivative of Z over [t_k-h, t_k+h]: (Z(k+h) - Z(k-h)) / span."""
@@ -414,9 +441,11 @@ class FlowProblem:
         model leaves unexplained."""
         if len(self.force.idx) == 0:
             return np.zeros((2, 0))
-        f = self.force_parts(p, start_s, end_s)
         m = self.mass_kg
-        e = (f["dv"] - f["dv_tilt"] + (p[5] / m) * f["dx"] + (p[9] / m) * f["dq"]
-             - (np.array([[p[6]], [p[7]]]) / m) * f["dt1"])
+        f = self.force_parts(p, start_s, end_s, with_dq=p[9] != 0.0)
+        e = f["dv"] - f["dv_tilt"] + (p[5] / m) * f["dx"]
+        if p[9] != 0.0:  # 0 * dq adds nothing: dq is finite (the odometry is)
+            e = e + (p[9] / m) * f["dq"]
+        e = e - (np.array([[p[6]], [p[7]]]) / m) * f["dt1"]
         e = e * m / f["span_s"]
         return e if self._force_offset is None else e + self._force_offset

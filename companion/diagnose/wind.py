@@ -144,19 +144,34 @@ def _pool(e: np.ndarray, w: np.ndarray, tm0: np.ndarray, tm1: np.ndarray, max_m:
 def _scan(ep: np.ndarray, wp: np.ndarray, b0: np.ndarray, b1: np.ndarray, min_s: float) -> tuple[float, int, int]:
     """Largest explained sum of squares of one mean shift over pooled windows j1..j2-1 lasting at
     least ``min_s``: (gain, j1, j2). ``ep`` (2, m) pooled residual sums, ``wp`` (m,) weights."""
+    gain = _scan_gains(ep, _ScanGrid(wp, b0, b1, min_s))
     m = ep.shape[1]
-    ce = np.concatenate([np.zeros((2, 1)), np.cumsum(ep, axis=1)], axis=1)
-    cw = np.concatenate([[0.0], np.cumsum(wp)])
-    j1 = np.arange(m)[:, None]
-    j2 = np.arange(1, m + 1)[None, :]
-    dur = b1[np.minimum(j2, m) - 1] - b0[j1]
-    nwt = cw[j2] - cw[j1]
-    num = ((ce[:, None, 1:] - ce[:, :-1, None]) ** 2).sum(axis=0)
-    ok = (j2 > j1) & (dur >= min_s) & (nwt > 0)
-    gain = np.where(ok, num / np.where(nwt > 0, nwt, 1.0), -1.0)
     flat = int(np.argmax(gain))
     a, b = divmod(flat, m)
     return float(gain[a, b]), a, b + 1
+
+
+class _ScanGrid:
+    """What the scan's gain depends on besides the residual: for each pair (j1, j2) whether the
+    window is allowed (long enough, with weight) and its pooled weight."""
+
+    def __init__(self, wp: np.ndarray, b0: np.ndarray, b1: np.ndarray, min_s: float) -> None:
+        m = len(wp)
+        cw = np.concatenate([[0.0], np.cumsum(wp)])
+        j1 = np.arange(m)[:, None]
+        j2 = np.arange(1, m + 1)[None, :]
+        dur = b1[np.minimum(j2, m) - 1] - b0[j1]
+        nwt = cw[j2] - cw[j1]
+        self.ok = (j2 > j1) & (dur >= min_s) & (nwt > 0)
+        self.nwt = np.where(nwt > 0, nwt, 1.0)
+
+
+def _scan_gains(ep: np.ndarray, grid: _ScanGrid) -> np.ndarray:
+    """The explained sum of squares of every allowed window (-1 elsewhere) for the pooled
+    residual ``ep`` (2, m): shape (m, m), [j1, j2 - 1]."""
+    ce = np.concatenate([np.zeros((2, 1)), np.cumsum(ep, axis=1)], axis=1)
+    num = ((ce[:, None, 1:] - ce[:, :-1, None]) ** 2).sum(axis=0)
+    return np.where(grid.ok, num / grid.nwt, -1.0)
 
 
 def null_pvalue(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, mask: np.ndarray | None = None,
@@ -207,7 +222,7 @@ def null_pvalue(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, 
     rng = np.random.default_rng(seed)
     exceed = 0
     sd = np.sqrt(lr_var)[:, None] * np.sqrt(wp)[None, :]  # a pooled sum of wp windows
-    for _ in range(reps):
-        g, _a, _b = _scan(rng.standard_normal(ep.shape) * sd, wp, b0, b1, min_s)
-        exceed += g >= observed
+    grid = _ScanGrid(wp, b0, b1, min_s)
+    for _ in range(reps):  # one replicate at a time: its (m, m) arrays stay in the cache
+        exceed += float(_scan_gains(rng.standard_normal(ep.shape) * sd, grid).max()) >= observed
     return (1 + exceed) / (reps + 1)
