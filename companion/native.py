@@ -1,0 +1,133 @@
+"""The compiled kernels of ``companion/native/kernels.c``, loaded through ctypes (issue 17).
+
+The reader's record scan with its CRC check and the CSV writer's number formatting run at the
+speed of reading the bytes only when compiled. numba would compile them, but loading numba and
+its cache costs about 0.45 s in a fresh process, the whole budget of a ``replay`` command on an
+hour-long recording; a small C library loads in a millisecond. So the C file is compiled once
+with the system's C compiler (``$CC``, else ``cc``) into a cache folder, keyed by a hash of the
+source, the compiler and the platform, and loaded from there afterwards.
+
+Every kernel is a copy, for speed only, of a numpy formulation that stays the definition: the
+callers use the numpy path when ``kernels()`` is None (no compiler, a failed build, not a
+POSIX system, or ``FLOWHOLD_NATIVE=0`` in the environment), and tests/test_native.py holds
+the two equal. Cache folder: ``$FLOWHOLD_CACHE_DIR``, else ``$XDG_CACHE_HOME/flowhold``, else
+``~/.cache/flowhold`` (a temporary folder if none is writable).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+SOURCE = Path(__file__).resolve().parent / "native" / "kernels.c"
+#: the ABI the Python side expects (``fh_version`` in kernels.c)
+VERSION = 5
+_FLAGS = ("-O2", "-std=c99", "-ffp-contract=off", "-shared", "-fPIC")
+_COMPILE_TIMEOUT_S = 120.0
+
+
+def enabled() -> bool:
+    """Whether the compiled kernels may be used (``FLOWHOLD_NATIVE`` is not "0")."""
+    return os.environ.get("FLOWHOLD_NATIVE", "1") != "0"
+
+
+def cache_dir() -> Path:
+    """Where the compiled library is kept (created on first use)."""
+    env = os.environ.get("FLOWHOLD_CACHE_DIR")
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "flowhold"
+
+
+def _compiler() -> list[str]:
+    return (os.environ.get("CC") or "cc").split()
+
+
+def library_path() -> Path:
+    """The compiled library's file for this source, compiler and platform."""
+    key = hashlib.sha256()
+    key.update(SOURCE.read_bytes())
+    key.update(repr((_compiler(), _FLAGS, sys.platform, os.uname().machine if hasattr(os, "uname") else "")).encode())
+    return cache_dir() / f"flowhold_kernels_{key.hexdigest()[:16]}.so"
+
+
+def _build(target: Path) -> None:
+    """Compile the source into ``target`` (atomically: other processes may build it too)."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=target.stem + ".", suffix=".tmp.so", dir=target.parent)
+    os.close(fd)
+    try:
+        subprocess.run([*_compiler(), *_FLAGS, "-o", tmp, str(SOURCE), "-lm"], check=True, capture_output=True,
+                       timeout=_COMPILE_TIMEOUT_S)
+        os.replace(tmp, target)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _declare(lib: ctypes.CDLL) -> None:
+    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32
+    lib.fh_version.restype = i32
+    lib.fh_version.argtypes = ()
+    lib.fh_init.restype = None
+    lib.fh_init.argtypes = ()
+    lib.fh_crc16.restype = ctypes.c_uint16
+    lib.fh_crc16.argtypes = (p, i64)
+    lib.fh_crc_packet.restype = ctypes.c_uint16
+    lib.fh_crc_packet.argtypes = (p, p, i64, ctypes.c_uint8)
+    lib.fh_scan.restype = i64
+    lib.fh_scan.argtypes = (p, i64, i64, i64, p, p, i64, i64, p, p, p, p, p, p, p, p, p, i64, p, p)
+    lib.fh_tables.restype = i32
+    lib.fh_tables.argtypes = (p, i64, p, p, p, p, p, p, p, i32, p, p, p, p, p, p, p, p, p, p)
+    lib.fh_csv_rows.restype = i64
+    lib.fh_csv_rows.argtypes = (i64, i32, p, p, p, p, p, p, i64, i64)
+
+
+def _load(path: Path) -> ctypes.CDLL | None:
+    try:
+        lib = ctypes.CDLL(str(path))
+        _declare(lib)
+        if lib.fh_version() != VERSION:
+            return None
+    except (OSError, AttributeError):
+        return None
+    lib.fh_init()
+    return lib
+
+
+@functools.cache
+def _kernels() -> ctypes.CDLL | None:
+    if os.name != "posix" or not SOURCE.is_file():
+        return None
+    candidates = [library_path()]
+    fallback = Path(tempfile.gettempdir()) / f"flowhold-{os.getuid()}" / candidates[0].name
+    candidates.append(fallback)
+    for path in candidates:
+        if path.is_file():
+            lib = _load(path)
+            if lib is not None:
+                return lib
+    for path in candidates:
+        try:
+            _build(path)
+        except (OSError, subprocess.SubprocessError):
+            continue
+        return _load(path)
+    return None
+
+
+def kernels() -> ctypes.CDLL | None:
+    """The loaded library (compiled first if needed), or None: then use the numpy path."""
+    return _kernels() if enabled() else None
+
+
+def ptr(a: object) -> int | None:
+    """The data address of a numpy array, for a ``c_void_p`` argument."""
+    return a.ctypes.data  # type: ignore[attr-defined]

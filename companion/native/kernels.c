@@ -1,0 +1,392 @@
+/* flowhold's compiled kernels: the reader's record scan with its CRC check, and the CSV writer's
+ * number formatting (issue 17).
+ *
+ * Each function is a compiled copy of a numpy formulation in the Python package, which stays the
+ * definition and the fallback when no C compiler is available:
+ *   fh_scan       <- companion/tlog_reader.py, _find_packets pass 1 (_claimed_end, _parse_headers,
+ *                    _check_crc), candidate by candidate;
+ *   fh_csv_rows   <- companion/csv_format.py, format_rows (itself Python's % formatting).
+ * The tests hold each equal to the one it copies (tests/test_native.py). Loaded through ctypes by
+ * companion/native.py, which compiles this file once with the system's C compiler.
+ *
+ * Plain C99, no library beyond libc and libm; no global state besides the CRC tables, which are
+ * filled once by fh_init (called by the loader before anything else).
+ */
+
+#include <math.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define STX_V1 0xFE
+#define STX_V2 0xFD
+#define TIME_HEADER_LEN 8
+#define SIGNATURE_LEN 13
+#define HEADER_LEN_V1 6
+#define HEADER_LEN_V2 10
+#define CRC_LEN 2
+
+/* ABI version: companion/native.py refuses a library whose fh_version differs */
+int32_t fh_version(void) { return 5; }
+
+/* ------------------------------------------------------------------------------------------- */
+/* CRC-16/MCRF4XX (X.25). crc_tab[k][b]: the CRC contribution of byte b followed by k zero bytes
+ * (slicing by 16). The CRC is affine over GF(2): crc(init, bytes) = crc(init, zeros of the same
+ * length) ^ crc(0, bytes), and leading zero bytes leave crc(0, .) unchanged; crc_init[L] is
+ * crc(0xFFFF, L zero bytes). So a packet's CRC is computed in whole 16-byte blocks ending with its
+ * last byte, the bytes before its first zeroed (the numpy formulation's trick, tlog_reader._check_crc). */
+
+#define CRC_MAX 320
+static uint16_t crc_tab[16][256];
+static uint16_t crc_init[CRC_MAX + 1];
+
+void fh_init(void) {
+    for (int b = 0; b < 256; b++) {
+        uint8_t tmp = (uint8_t)(b ^ (b << 4));
+        crc_tab[0][b] = (uint16_t)((tmp << 8) ^ (tmp << 3) ^ (tmp >> 4));
+    }
+    for (int k = 1; k < 16; k++)
+        for (int b = 0; b < 256; b++) {
+            uint16_t prev = crc_tab[k - 1][b];
+            crc_tab[k][b] = (uint16_t)((prev >> 8) ^ crc_tab[0][prev & 0xFF]);
+        }
+    uint16_t c = 0xFFFF;
+    for (int k = 0; k <= CRC_MAX; k++) {
+        crc_init[k] = c;
+        c = (uint16_t)((c >> 8) ^ crc_tab[0][c & 0xFF]);
+    }
+}
+
+static inline uint16_t crc_step(uint16_t crc, uint8_t b) { return (uint16_t)((crc >> 8) ^ crc_tab[0][(crc ^ b) & 0xFF]); }
+
+static inline uint16_t crc_bytes(uint16_t crc, const uint8_t *p, int64_t n) {
+    while (n-- > 0) crc = crc_step(crc, *p++);
+    return crc;
+}
+
+static inline uint16_t slice8(uint64_t w, int k) { /* the 8 bytes of w followed by k zero bytes */
+    return (uint16_t)(crc_tab[k + 7][w & 0xFF] ^ crc_tab[k + 6][(w >> 8) & 0xFF] ^ crc_tab[k + 5][(w >> 16) & 0xFF] ^
+                      crc_tab[k + 4][(w >> 24) & 0xFF] ^ crc_tab[k + 3][(w >> 32) & 0xFF] ^
+                      crc_tab[k + 2][(w >> 40) & 0xFF] ^ crc_tab[k + 1][(w >> 48) & 0xFF] ^ crc_tab[k][w >> 56]);
+}
+
+/* The MAVLink CRC of the len bytes at p followed by the byte extra (little-endian machine; up to
+ * 15 bytes before p are read, and must be readable, when p - base >= 15). */
+static inline uint16_t crc_packet(const uint8_t *base, const uint8_t *p, int64_t len, uint8_t extra) {
+    int64_t total = len + 1;
+    int64_t blocks = (total + 15) / 16;
+    int64_t pad = 16 * blocks - total;
+    if (total > CRC_MAX || p - pad < base) return crc_step(crc_bytes(0xFFFF, p, len), extra);
+    const uint8_t *q = p - pad;
+    uint16_t crc = 0;
+    for (int64_t b = 0; b < blocks; b++, q += 16) {
+        uint64_t w0, w1;
+        memcpy(&w0, q, 8);
+        memcpy(&w1, q + 8, 8);
+        if (b == 0) { /* the bytes before p are zeros */
+            if (pad >= 8) {
+                w0 = 0;
+                w1 &= ~0ULL << (8 * (pad - 8));
+            } else {
+                w0 &= ~0ULL << (8 * pad);
+            }
+        }
+        if (b == blocks - 1) w1 = (w1 & 0x00FFFFFFFFFFFFFFULL) | (uint64_t)extra << 56; /* extra after the data */
+        w0 ^= crc;
+        crc = (uint16_t)(slice8(w0, 8) ^ slice8(w1, 0));
+    }
+    return (uint16_t)(crc ^ crc_init[total]);
+}
+
+/* CRC-16/MCRF4XX of n bytes (no crc_extra), and the MAVLink CRC of n bytes then extra: for the tests. */
+uint16_t fh_crc16(const uint8_t *p, int64_t n) { return crc_bytes(0xFFFF, p, n); }
+uint16_t fh_crc_packet(const uint8_t *base, const uint8_t *p, int64_t n, uint8_t extra) {
+    return crc_packet(base, p, n, extra);
+}
+
+/* ------------------------------------------------------------------------------------------- */
+/* The reader's first pass */
+
+static inline int is_stx(uint8_t b) { return (uint8_t)(b - STX_V2) < 2; }
+
+/* where a packet starting at s ends, by its STX, length and signed flag (_claimed_end) */
+static inline int64_t claimed_end(const uint8_t *buf, int64_t s) {
+    int v2 = buf[s] == STX_V2;
+    int64_t length = buf[s + 1];
+    int64_t sig = v2 ? (buf[s + 2] & 1) * SIGNATURE_LEN : 0;
+    return s + (v2 ? HEADER_LEN_V2 + CRC_LEN : HEADER_LEN_V1 + CRC_LEN) + length + sig;
+}
+
+static inline int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
+
+/* Pass 1 of _find_packets over the candidate packet starts (bytes 0xFD, 0xFE) in [pos, stop):
+ * a candidate from which the record chain goes on for two more records and whose packet fits in
+ * the file ("chained") is a good packet if its header is decodable (a message id with
+ * known[id], incompatibility flags at most "signed") and its CRC (with extra[id]) holds; its
+ * header fields are written to the good_* arrays. A candidate that fits but is not chained goes
+ * to other[]. ``buf`` holds n_bytes of file and at least 512 bytes of zeros after them.
+ * Stops early when either output is full; returns the position to resume from (stop when
+ * done) and the counts in *n_good, *n_other. */
+int64_t fh_scan(const uint8_t *buf, int64_t n_bytes, int64_t pos, int64_t stop, const uint8_t *known,
+                const uint8_t *extra, int64_t tab_len, int64_t cap_good, int64_t *good_s, uint8_t *good_hdr,
+                int16_t *good_plen, int16_t *good_total, int32_t *good_msgid, uint8_t *good_sysid,
+                uint8_t *good_compid, uint64_t *good_t, int64_t *n_good, int64_t cap_other, int64_t *other,
+                int64_t *n_other) {
+    int64_t ng = 0, no = 0;
+    if (pos < TIME_HEADER_LEN) pos = TIME_HEADER_LEN;
+    if (stop > n_bytes) stop = n_bytes;
+    for (int64_t word = pos & ~(int64_t)7; word < stop; word += 8) {
+        uint64_t w;
+        memcpy(&w, buf + word, 8); /* buf is padded past n_bytes */
+        /* bit 7 of each byte that is 0xFD or 0xFE: 0xFD-0xFF (the low 7 bits plus 3 carry into bit
+         * 7, no carry crosses a byte), less 0xFF (a zero byte of ~w, the exact test) */
+        uint64_t ge = ((w & 0x7F7F7F7F7F7F7F7FULL) + 0x0303030303030303ULL) & w & 0x8080808080808080ULL;
+        uint64_t nw = ~w;
+        uint64_t ff = ~(((nw & 0x7F7F7F7F7F7F7F7FULL) + 0x7F7F7F7F7F7F7F7FULL) | nw) & 0x8080808080808080ULL;
+        uint64_t m = ge & ~ff;
+        if (word < pos) m &= ~0ULL << (8 * (pos - word));
+        if (stop - word < 8) m &= (1ULL << (8 * (stop - word))) - 1;
+        while (m) {
+            int64_t s = word + (__builtin_ctzll(m) >> 3);
+            m &= m - 1;
+            if (ng >= cap_good || no >= cap_other) {
+                *n_good = ng;
+                *n_other = no;
+                return s;
+            }
+            int64_t end = claimed_end(buf, s);
+            if (end > n_bytes) continue; /* does not fit */
+            int chained = end == n_bytes;
+            if (!chained) {
+                int64_t nxt = min64(end + TIME_HEADER_LEN, n_bytes);
+                if (is_stx(buf[nxt])) {
+                    int64_t end2 = claimed_end(buf, nxt);
+                    chained = end2 == n_bytes || is_stx(buf[min64(end2 + TIME_HEADER_LEN, n_bytes)]);
+                }
+            }
+            if (!chained) {
+                other[no++] = s;
+                continue;
+            }
+            const uint8_t *h = buf + s;
+            int v2 = h[0] == STX_V2;
+            int64_t plen = h[1];
+            uint8_t flags = v2 ? h[2] : 0;
+            int64_t hdr = v2 ? HEADER_LEN_V2 : HEADER_LEN_V1;
+            int64_t msgid = v2 ? ((int64_t)h[7] | (int64_t)h[8] << 8 | (int64_t)h[9] << 16) : h[5];
+            int64_t id = msgid < tab_len - 1 ? msgid : tab_len - 1;
+            if (!known[id] || (flags & 0xFE)) continue;
+            int64_t covered = hdr - 1 + plen;
+            uint16_t stored = (uint16_t)(h[1 + covered] | h[2 + covered] << 8);
+            if (crc_packet(buf, h + 1, covered, extra[id]) != stored) continue;
+            uint64_t t_be;
+            memcpy(&t_be, h - TIME_HEADER_LEN, 8);
+            good_s[ng] = s;
+            good_hdr[ng] = (uint8_t)hdr;
+            good_plen[ng] = (int16_t)plen;
+            good_total[ng] = (int16_t)(hdr + plen + CRC_LEN + ((flags & 1) ? SIGNATURE_LEN : 0));
+            good_msgid[ng] = (int32_t)msgid;
+            good_sysid[ng] = v2 ? h[5] : h[3];
+            good_compid[ng] = v2 ? h[6] : h[4];
+            good_t[ng] = __builtin_bswap64(t_be); /* big-endian on the wire */
+            ng++;
+        }
+    }
+    *n_good = ng;
+    *n_other = no;
+    return stop;
+}
+
+/* The fields of n payloads of one message type, decoded straight into their columns: row i's
+ * payload is buf[at[i]:at[i] + min(plen[i], size)] followed by zeros up to size bytes (MAVLink 2
+ * truncates trailing zeros; a longer payload is cut, as pymavlink does); field f is the
+ * width[f] bytes at offset[f] of it, copied to out[f] + i * width[f] (little-endian wire
+ * order: the caller checks the machine is little-endian). Equals _decode_fast's structured
+ * view of the same rows. */
+static inline void copy_bytes(uint8_t *o, const uint8_t *a, int64_t w) {
+    switch (w) { /* the common widths as plain loads and stores */
+    case 1: *o = *a; break;
+    case 2: memcpy(o, a, 2); break;
+    case 4: memcpy(o, a, 4); break;
+    case 8: memcpy(o, a, 8); break;
+    default: memcpy(o, a, (size_t)w);
+    }
+}
+
+/* The reader's tables in one pass over the packets in file order (_tables with _decode_fast):
+ * packet i of group g = group[i] (-1: not here) becomes the next row r of that group's table:
+ * t_out[g][r] = t_s[i], sysid/compid, record_out[g][r] = i, and each field f of the group
+ * (fields first_field[g] .. first_field[g + 1] - 1) is the width[f] bytes at offset[f] of the
+ * payload (buf[s[i] + hdr[i]:], plen[i] bytes, zero-padded to size[g]; longer: cut), copied to
+ * out[f] + r * width[f] (little-endian wire order: the caller checks the machine is
+ * little-endian). Returns 0, or -1 if a size is over 255. */
+int32_t fh_tables(const uint8_t *buf, int64_t n, const int64_t *s, const uint8_t *hdr, const int16_t *plen,
+                  const int32_t *group, const double *t_s, const uint8_t *sysid, const uint8_t *compid, int32_t ngroups,
+                  const int64_t *size, const int64_t *first_field, const int64_t *offset, const int64_t *width,
+                  uint8_t *const *out, double *const *t_out, uint8_t *const *sysid_out, uint8_t *const *compid_out,
+                  int64_t *const *record_out, int64_t *rows) {
+    uint8_t padded[256];
+    for (int32_t g = 0; g < ngroups; g++) {
+        rows[g] = 0;
+        if (size[g] > 255) return -1;
+    }
+    for (int64_t i = 0; i < n; i++) {
+        int32_t g = group[i];
+        if (g < 0) continue;
+        int64_t r = rows[g]++;
+        t_out[g][r] = t_s[i];
+        sysid_out[g][r] = sysid[i];
+        compid_out[g][r] = compid[i];
+        record_out[g][r] = i;
+        const uint8_t *payload = buf + s[i] + hdr[i];
+        int64_t sz = size[g];
+        if (plen[i] < sz) {
+            int64_t k = plen[i] > 0 ? plen[i] : 0;
+            memcpy(padded, payload, (size_t)k);
+            memset(padded + k, 0, (size_t)(sz - k));
+            payload = padded;
+        }
+        for (int64_t f = first_field[g]; f < first_field[g + 1]; f++)
+            copy_bytes(out[f] + r * width[f], payload + offset[f], width[f]);
+    }
+    return 0;
+}
+
+/* ------------------------------------------------------------------------------------------- */
+/* CSV rows */
+
+enum { COL_FLOAT = 0, COL_INT = 1, COL_TEXT = 2 };
+
+static const double POW10[23] = {1e0,  1e1,  1e2,  1e3,  1e4,  1e5,  1e6,  1e7,  1e8,  1e9,  1e10, 1e11,
+                                 1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18, 1e19, 1e20, 1e21, 1e22};
+
+/* "%.<P>g" of a finite non-zero x whose digits are unambiguous from one scaling (the rule of
+ * csv_format._floats); returns the length written, or 0 when x must go the slow way. */
+static inline int format_g_fast(double x, int P, char *o) {
+    double ax = fabs(x);
+    if (!(ax >= 1e-300 && ax < 1e300)) return 0;
+    int64_t e = (int64_t)floor(log10(ax));
+    int64_t k = P - 1 - e;
+    if (k > 22 || k < -22) return 0;
+    double m = k >= 0 ? ax * POW10[k] : ax / POW10[-k];
+    double d = rint(m);
+    double frac = m - floor(m);
+    double lo = POW10[P - 1], hi = POW10[P];
+    if (!(fabs(frac - 0.5) > hi * 1e-15) || d < lo || d >= hi) return 0;
+    uint64_t D = (uint64_t)d;
+    char dig[20];
+    for (int j = P - 1; j >= 0; j--) {
+        dig[j] = (char)('0' + D % 10);
+        D /= 10;
+    }
+    int nd = P;
+    while (nd > 1 && dig[nd - 1] == '0') nd--;
+    char *p = o;
+    if (x < 0) *p++ = '-';
+    if (e < -4 || e >= P) { /* d.ddde+XX */
+        *p++ = dig[0];
+        if (nd > 1) {
+            *p++ = '.';
+            memcpy(p, dig + 1, (size_t)(nd - 1));
+            p += nd - 1;
+        }
+        *p++ = 'e';
+        int64_t ae = e < 0 ? -e : e;
+        *p++ = e < 0 ? '-' : '+';
+        if (ae >= 100) *p++ = (char)('0' + ae / 100 % 10);
+        *p++ = (char)('0' + ae / 10 % 10);
+        *p++ = (char)('0' + ae % 10);
+    } else if (e < 0) { /* 0.000ddd */
+        *p++ = '0';
+        *p++ = '.';
+        for (int64_t j = 0; j < -e - 1; j++) *p++ = '0';
+        memcpy(p, dig, (size_t)nd);
+        p += nd;
+    } else { /* ddd.ddd */
+        int whole = (int)e + 1;
+        if (nd <= whole) {
+            memcpy(p, dig, (size_t)whole); /* the digits up to the point, zeros included */
+            p += whole;
+        } else {
+            memcpy(p, dig, (size_t)whole);
+            p += whole;
+            *p++ = '.';
+            memcpy(p, dig + whole, (size_t)(nd - whole));
+            p += nd - whole;
+        }
+    }
+    return (int)(p - o);
+}
+
+/* "%.<P>g" of any double as Python's % operator spells it */
+static inline int format_g(double x, int P, char *o) {
+    if (isnan(x)) {
+        memcpy(o, "nan", 3);
+        return 3;
+    }
+    if (isinf(x)) {
+        if (x < 0) {
+            memcpy(o, "-inf", 4);
+            return 4;
+        }
+        memcpy(o, "inf", 3);
+        return 3;
+    }
+    if (x == 0) {
+        if (signbit(x)) {
+            memcpy(o, "-0", 2);
+            return 2;
+        }
+        o[0] = '0';
+        return 1;
+    }
+    int len = format_g_fast(x, P, o);
+    if (len) return len;
+    /* the C library's %g: correctly rounded like Python's (tests/test_native.py holds them equal) */
+    char tmp[64];
+    len = snprintf(tmp, sizeof tmp, "%.*g", P, x);
+    memcpy(o, tmp, (size_t)len);
+    return len;
+}
+
+static inline int format_d(int64_t v, char *o) {
+    char tmp[24];
+    int n = 0;
+    uint64_t a = v < 0 ? (uint64_t)0 - (uint64_t)v : (uint64_t)v;
+    do {
+        tmp[n++] = (char)('0' + a % 10);
+        a /= 10;
+    } while (a);
+    char *p = o;
+    if (v < 0) *p++ = '-';
+    while (n) *p++ = tmp[--n];
+    return (int)(p - o);
+}
+
+/* Rows [0, n) of ncols columns as CSV text into out (capacity cap bytes; the caller sizes it
+ * with fh_csv_row_bound), returning the bytes written (-1 if cap was too small).
+ * kind[c]: COL_FLOAT (data[c]: float64, digits[c] significant digits), COL_INT (int64) or
+ * COL_TEXT (int32 codes into the texts [text_off[c][j], text_off[c][j + 1]) of text_blob[c]). */
+int64_t fh_csv_rows(int64_t n, int32_t ncols, const int32_t *kind, const void *const *data, const int32_t *digits,
+                    const uint8_t *const *text_blob, const int64_t *const *text_off, uint8_t *out, int64_t cap,
+                    int64_t row_bound) {
+    uint8_t *p = out;
+    for (int64_t i = 0; i < n; i++) {
+        if ((p - out) + row_bound > cap) return -1;
+        for (int32_t c = 0; c < ncols; c++) {
+            if (kind[c] == COL_FLOAT) {
+                p += format_g(((const double *)data[c])[i], digits[c], (char *)p);
+            } else if (kind[c] == COL_INT) {
+                p += format_d(((const int64_t *)data[c])[i], (char *)p);
+            } else {
+                int32_t j = ((const int32_t *)data[c])[i];
+                int64_t a = text_off[c][j], b = text_off[c][j + 1];
+                memcpy(p, text_blob[c] + a, (size_t)(b - a));
+                p += b - a;
+            }
+            *p++ = c + 1 < ncols ? ',' : '\n';
+        }
+    }
+    return p - out;
+}
