@@ -140,7 +140,8 @@ def render(report: Report, markdown: str, folder: Path, *, q_rad_per_count: floa
     changes = config_changes(report, q_rad_per_count=q_rad_per_count)
     parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
              f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
-             f"<h1>{_inline(title)}</h1>", f'<p class="lead" id="headline">{html.escape(first)}</p>']
+             f"<h1>{_inline(title)}</h1>", refly_section(folder),
+             f'<p class="lead" id="headline">{html.escape(first)}</p>']
     if changes:
         parts.append("<p>The same changes as TOML, the fitted values: in a copy of the config, set these keys in "
                      "the tables of the same name (an <code>[effects.*]</code> table is added whole). Every key is "
@@ -157,6 +158,43 @@ def write_html_report(report: Report, markdown_path: str | Path, *, q_rad_per_co
     out = md.with_name("report.html")
     try:
         out.write_text(render(report, md.read_text(), md.parent, q_rad_per_count=q_rad_per_count))
+    except OSError as exc:
+        raise FlowholdError(f"cannot write the HTML report {out}: {exc.strerror}") from None
+    return out
+
+
+#: what ``python -m simvehicle refly --report DIR`` writes into DIR: "your simulation vs your flight,
+#: before and after", the first thing on the page of a diagnosis written to the same folder
+REFLY_MD = "refly.md"
+_REFLY_SECTION = re.compile(r'<section id="refly">.*?</section>', re.S)
+
+
+def refly_section(folder: Path) -> str:
+    """The refly comparison in ``folder`` (``REFLY_MD`` and its plots) as one HTML section; "" when
+    there is none."""
+    md = Path(folder) / REFLY_MD
+    if not md.is_file():
+        return ""
+    return '<section id="refly">' + markdown_to_html(md.read_text(), Path(folder)) + "</section>"
+
+
+def write_refly_html(markdown_path: str | Path) -> Path:
+    """``report.html`` beside refly's Markdown: a diagnosis page already there gets the comparison
+    first (under its title, replacing an older one); otherwise a page of its own."""
+    md = Path(markdown_path)
+    out = md.with_name("report.html")
+    section = refly_section(md.parent)
+    try:
+        if out.is_file():
+            text = _REFLY_SECTION.sub("", out.read_text())
+            i = text.find("</h1>")
+            if i >= 0:
+                out.write_text(text[:i + 5] + section + text[i + 5:])
+                return out
+        title = "Your simulation vs your flight"
+        out.write_text("\n".join(["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+                                  f"<title>{title}</title><style>{_CSS}</style></head><body>",
+                                  f"<h1>{title}</h1>", section, "</body></html>", ""]))
     except OSError as exc:
         raise FlowholdError(f"cannot write the HTML report {out}: {exc.strerror}") from None
     return out

@@ -1,4 +1,4 @@
-"""Command line of the simulated vehicle: ``python -m simvehicle {scenario,serve,sweep}``."""
+"""Command line of the simulated vehicle: ``python -m simvehicle {scenario,serve,sweep,refly}``."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m simvehicle",
                                      description="The paper's simulated vehicle: scenarios, a MAVLink/UDP "
                                                  "vehicle, parameter sweeps.")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{scenario,serve,sweep}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{scenario,serve,sweep,refly}")
     sc = sub.add_parser("scenario", help="run one of the paper's scenarios in simulation time")
     sc.add_argument("name", choices=["step", "gust", "slow", "rail", "triangle"],
                     help="step (0 -> 2 m/s at 5 s, Fig. 16), gust (4 N headwind from 5 s, Fig. 17), slow "
@@ -61,6 +61,18 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--in-process", action="store_true",
                     help="no Dask: one batch after another in this process (the mode without the cluster extra)")
     sw.add_argument("--batch", type=int, help="flights per task (default: about four tasks per worker, at most 256)")
+    rf = sub.add_parser("refly", help="fly a recorded flight again in the simulator, nominal and fitted model, "
+                                      "and compare both with the recording (docs/refly.md)")
+    rf.add_argument("recording", help="the flight: .tlog, DataFlash .bin, PX4 .ulg (each also .gz)")
+    rf.add_argument("--config", help="the fitted model (diagnose --model-out); the nominal is the same without its "
+                                     "[effects.*]; default configs/paper.toml")
+    rf.add_argument("--profile", choices=["paper", "ardupilot", "px4"],
+                    help="sensor message convention (default: detected from the recording)")
+    rf.add_argument("--also", action="append", metavar="REC2",
+                    help="another recording of the same vehicle, compared on every frame (repeatable)")
+    rf.add_argument("--report", metavar="DIR", help="write refly.md, its plots and report.html into this folder "
+                                                     "(a diagnose report there gets the comparison first)")
+    rf.add_argument("--json", help='write {"channels": [{"channel", "unit", "rms_nominal", "rms_fitted"}, ...]} here')
     return parser
 
 
@@ -117,6 +129,10 @@ def _dispatch(args: argparse.Namespace) -> int:
         from simvehicle.server import run_cli
 
         return int(run_cli(args))
+    if args.command == "refly":
+        from simvehicle.refly import run_cli as refly_cli
+
+        return int(refly_cli(args))
     from simvehicle.sweep import run_cli as sweep_cli
 
     return int(sweep_cli(args))
