@@ -41,8 +41,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from companion.config import Config, load_config
 from companion.errors import ExitCode, FlowholdError, RecordingError
 from companion.estimator import frame_spacing
-from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FieldView, Profile, flow_columns
-from companion.recording import read_recording_bytes
+from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FieldView, Profile, detect_profile, flow_columns
+from companion.recording import load_recording, read_recording_bytes
 from companion.tlog_writer import TlogWriter, mav_encoder
 
 _HEADER = struct.Struct(">Q")
@@ -191,9 +191,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         cfg = load_config(args.config)
         if args.src is None:
-            from companion.profiles import detect_profile
-            from companion.recording import load_recording
-
             src = Profile(detect_profile(load_recording(args.recording))[0])
         else:
             src = Profile(args.src)

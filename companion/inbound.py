@@ -13,11 +13,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from companion.core import CompanionCore, StepOutput
+from companion.mavlink_ids import BODY_FRAMES, COMPANION_COMPONENT, DOWNWARD, MAV_COMP_ID_ALL, MAV_FRAME_LOCAL_NED
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FlowColumns, Profile, flow_scalar
 
-DOWNWARD = 25  # MAV_SENSOR_ROTATION_PITCH_270
-BODY_FRAMES = (8, 9, 12)  # MAV_FRAME_BODY_NED, BODY_OFFSET_NED, BODY_FRD
-LOCAL_NED = 1
 #: POSITION_TARGET type_mask bits: vx, vy ignored (a position or acceleration target)
 VELOCITY_IGNORED = 0b11000
 INT16_CLIP = 32767  # RAW_IMU / SCALED_IMU gyro fields (mrad/s) at this magnitude have clipped
@@ -90,13 +88,13 @@ class MessageRouter:
         if mtype == "MANUAL_CONTROL":
             vx, vy = msg.x / 1000.0 * vmax, msg.y / 1000.0 * vmax
         else:
-            if msg.target_component not in (0, 191):
+            if msg.target_component not in (MAV_COMP_ID_ALL, COMPANION_COMPONENT):
                 return
             if msg.type_mask & VELOCITY_IGNORED:
                 self._ignore("setpoint without a horizontal velocity")
                 return
             vx, vy = float(msg.vx), float(msg.vy)
-            if msg.coordinate_frame == LOCAL_NED:
+            if msg.coordinate_frame == MAV_FRAME_LOCAL_NED:
                 c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
                 vx, vy = c * vx + s * vy, -s * vx + c * vy
             elif msg.coordinate_frame not in BODY_FRAMES:

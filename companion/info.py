@@ -19,8 +19,11 @@ from typing import Any
 
 import numpy as np
 
+from companion import profiles
 from companion.errors import FlowholdError, RecordingError, check_output, writing
+from companion.mavlink_ids import DOWNWARD
 from companion.recording import MessageTable, Recording, load_recording
+from companion.tlog_writer import SIM_CLOCK_TEXT
 
 #: an interval longer than this many times the stream's median interval is a gap
 GAP_FACTOR = 3.0
@@ -31,8 +34,6 @@ RATE_SPAN = 10
 #: a message type sent at least this often on average (Hz, per sender) is a stream: its gaps
 #: are listed (1 Hz heartbeats are streams; occasional STATUSTEXT or PARAM_VALUE are not)
 STREAM_MIN_HZ = 0.5
-#: DISTANCE_SENSOR orientation that measures altitude (MAV_SENSOR_ROTATION_PITCH_270, down)
-DOWNWARD = 25
 
 #: the vehicle's time fields ``recording_clock`` compares record times with: (message, field, to s)
 CLOCK_FIELDS = (("ATTITUDE", "time_boot_ms", 1e-3), ("RAW_IMU", "time_usec", 1e-6),
@@ -161,8 +162,6 @@ def recording_clock(rec: Recording) -> dict[str, Any]:
        was stamped with the wall clock: durations and rates here are wall-clock.
     3. No time field: None.
     """
-    from companion.tlog_writer import SIM_CLOCK_TEXT
-
     if "STATUSTEXT" in rec:
         for text in rec.tables["STATUSTEXT"]["text"]:
             if SIM_CLOCK_TEXT in str(text):
@@ -195,10 +194,8 @@ def recording_clock(rec: Recording) -> dict[str, Any]:
 
 
 def _profile(rec: Recording) -> dict[str, Any]:
-    from companion.profiles import detect_profile
-
     try:
-        name, reason = detect_profile(rec)
+        name, reason = profiles.detect_profile(rec)
     except FlowholdError as exc:
         return {"name": None, "reason": str(exc)}
     return {"name": str(name), "reason": str(reason)}

@@ -36,13 +36,13 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mav  # noqa: E402
 
 from companion.errors import LinkError, UsageError  # noqa: E402
+from companion.mavlink_ids import GUIDED_NOGPS as GUIDED_NOGPS  # noqa: E402  (link.GUIDED_NOGPS, re-exported)
 from companion.tlog_writer import SIM_CLOCK_TEXT  # noqa: E402
 
 #: ArduCopter's flight modes by custom_mode number (the ones a GCS names)
 COPTER_MODES = {0: "STABILIZE", 1: "ACRO", 2: "ALT_HOLD", 3: "AUTO", 4: "GUIDED", 5: "LOITER", 6: "RTL",
                 7: "CIRCLE", 9: "LAND", 11: "DRIFT", 13: "SPORT", 14: "FLIP", 15: "AUTOTUNE", 16: "POSHOLD",
                 17: "BRAKE", 18: "THROW", 19: "AVOID_ADSB", 20: "GUIDED_NOGPS", 21: "SMART_RTL"}
-GUIDED_NOGPS = 20
 ARM_MAGIC_FORCE = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that skips pre-arm checks
 #: 10 µs ticks from 2015-01-01 to now: the MAVLink 2 signing timestamp
 SIGNING_EPOCH_S = 1_420_070_400

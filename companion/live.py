@@ -64,7 +64,9 @@ from companion.controller import PiState
 from companion.core import CROSS_FRAME_CAUSES, CompanionCore, HoldCause, StepOutput
 from companion.errors import LinkError, UsageError, check_output, output_error
 from companion.inbound import MessageRouter, gyro_time_s, scalar_flow
+from companion.mavlink_ids import GUIDED_NOGPS
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, LiveProfileDetector, Profile
+from companion.setpoint import decayed_setpoint
 from companion.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S, TlogWriter
 
 mav = link.mav
@@ -123,16 +125,6 @@ def parse_setpoint(text: str) -> tuple[float, float]:
     if not (math.isfinite(vx) and math.isfinite(vy)):
         raise UsageError(f"--setpoint: values must be finite, got {text!r}")
     return vx, vy
-
-
-def decayed_setpoint(setpoint_m_s: tuple[float, float], base_m_s: tuple[float, float], age_s: float,
-                     timeout_s: float) -> tuple[float, float]:
-    """A GCS/stick setpoint ``age_s`` after its last refresh: held for ``timeout_s``, then a
-    linear ramp to ``base_m_s`` that arrives ``2 timeout_s`` after the refresh."""
-    if age_s <= timeout_s:
-        return setpoint_m_s
-    f = max(0.0, 1.0 - (age_s - timeout_s) / timeout_s)
-    return (base_m_s[0] + f * (setpoint_m_s[0] - base_m_s[0]), base_m_s[1] + f * (setpoint_m_s[1] - base_m_s[1]))
 
 
 class FrameOrder(enum.Enum):
@@ -584,9 +576,9 @@ class LiveCompanion:
         for name in (flow, "RAW_IMU", "DISTANCE_SENSOR", "ATTITUDE"):
             self._request_stream(name)
         if self.arm:
-            if self.mode != link.GUIDED_NOGPS:
+            if self.mode != GUIDED_NOGPS:
                 self.commander.add("switch to GUIDED_NOGPS", mav.MAV_CMD_DO_SET_MODE,
-                                   mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, link.GUIDED_NOGPS)
+                                   mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, GUIDED_NOGPS)
             if not self.armed:
                 self.commander.add("arm", mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         else:
@@ -717,7 +709,7 @@ class LiveCompanion:
                 done = self.commander.on_ack(msg.command, msg.result)
                 if done is not None and msg.result == mav.MAV_RESULT_ACCEPTED:
                     if done.command == mav.MAV_CMD_DO_SET_MODE:
-                        self.mode = link.GUIDED_NOGPS
+                        self.mode = GUIDED_NOGPS
                     elif done.command == mav.MAV_CMD_COMPONENT_ARM_DISARM:
                         self.armed = True
         elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
@@ -762,7 +754,7 @@ class LiveCompanion:
                                                     msg.get_srcSystem(), msg.get_srcComponent()))
 
     def _update_control(self, now: float) -> None:
-        want = self.armed and self.mode == link.GUIDED_NOGPS and self.profile_known
+        want = self.armed and self.mode == GUIDED_NOGPS and self.profile_known
         if want and not self.in_control:
             self.in_control = True
             self.core.pi.state = PiState()

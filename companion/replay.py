@@ -71,8 +71,20 @@ from companion.core import (
     repeat_window,
     run_control,
 )
+from companion.csv_format import format_rows
 from companion.errors import RecordingError, UsageError, check_output, writing
-from companion.inbound import INT16_CLIP
+from companion.inbound import INT16_CLIP, MessageRouter
+from companion.mavlink_ids import (
+    BODY_FRAMES,
+    COMPANION_COMPONENT,
+    DOWNWARD,
+    GUIDED_NOGPS,
+    MAV_AUTOPILOT_ARDUPILOTMEGA,
+    MAV_AUTOPILOT_INVALID,
+    MAV_FRAME_LOCAL_NED,
+    MAV_MODE_FLAG_SAFETY_ARMED,
+    NOT_VEHICLE_TYPES,
+)
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FlowColumns, Profile, detect_profile, flow_columns
 from companion.recording import (
     MessageTable,
@@ -82,16 +94,9 @@ from companion.recording import (
     read_recording_bytes,
     recording_name,
 )
+from companion.rotation import quaternions_to_euler
+from companion.setpoint import decayed_setpoint
 
-COMPANION_COMPONENT = 191
-GUIDED_NOGPS = 20  # ArduCopter custom_mode
-MAV_AUTOPILOT_ARDUPILOTMEGA = 3
-MAV_AUTOPILOT_INVALID = 8
-MAV_MODE_FLAG_SAFETY_ARMED = 128
-NOT_VEHICLE_TYPES = (6, 18)  # MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER
-DOWNWARD = 25  # MAV_SENSOR_ROTATION_PITCH_270
-BODY_FRAMES = (8, 9, 12)
-LOCAL_NED = 1
 #: truth is interpolated only between LOCAL_POSITION_NED samples at most this far apart (s)
 TRUTH_MAX_GAP_S = 0.25
 #: a progress bar for writing the CSV above this many rows
@@ -233,7 +238,7 @@ def frame_setpoints(rec: Recording, cfg: Config, sysid: int, flow_record: np.nda
         frame = g["coordinate_frame"]
         gvx = np.asarray(g["vx"], float)
         gvy = np.asarray(g["vy"], float)
-        local = frame == LOCAL_NED
+        local = frame == MAV_FRAME_LOCAL_NED
         if local.any():  # rotated by the yaw the vehicle reported last before the setpoint arrived
             att = _from(rec, "ATTITUDE", sysid)
             yaw = np.zeros(len(g))
@@ -248,8 +253,6 @@ def frame_setpoints(rec: Recording, cfg: Config, sysid: int, flow_record: np.nda
         g_rec, g_t = g.record[usable], g.t_s[usable]
         gvx, gvy = gvx[usable], gvy[usable]
         if len(g_rec):
-            from companion.live import decayed_setpoint
-
             j = latest_before(g_rec, flow_record)
             age = flow_log_s - g_t[np.maximum(j, 0)]
             timeout = cfg.companion.setpoint_timeout_s
@@ -337,14 +340,6 @@ def _payload(fc: FlowColumns) -> np.ndarray:
 
 def _take(x: Any, idx: np.ndarray, n: int) -> np.ndarray:
     return np.broadcast_to(np.asarray(x, dtype=float), (n,))[idx]
-
-
-def _quat_to_roll_pitch(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(roll, pitch) rad of quaternions (n, 4) [w, x, y, z], as ``outbound.quaternion_to_euler``."""
-    w, x, y, z = (np.asarray(q[:, i], float) for i in range(4))
-    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
-    return roll, pitch
 
 
 def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOptions | None = None) -> ReplayResult:
@@ -523,7 +518,7 @@ def _recorded(rec: Recording, time_s: np.ndarray) -> dict[str, np.ndarray]:
         sat = _companion(rec.tables["SET_ATTITUDE_TARGET"], ("time_boot_ms", "q"))
         if len(sat):
             j = _match_last(np.asarray(sat["time_boot_ms"], np.int64), ms)
-            roll, pitch = _quat_to_roll_pitch(np.asarray(sat["q"], float))
+            roll, pitch, _ = quaternions_to_euler(sat["q"])
             out["rec_roll_cmd_rad"] = np.where(j >= 0, roll[np.maximum(j, 0)], np.nan)
             out["rec_pitch_cmd_rad"] = np.where(j >= 0, pitch[np.maximum(j, 0)], np.nan)
     if "VISION_SPEED_ESTIMATE" in rec:
@@ -559,8 +554,6 @@ def _replay_live(rec: Recording, path: Path, cfg: Config, profile: Profile, opti
                  ) -> list[StepOutput]:
     """``replay_live`` with the recording read (``rec``) and ``path`` a plain .tlog of it."""
     from pymavlink import mavutil
-
-    from companion.inbound import MessageRouter
 
     fr, sysid = _prepare(rec, cfg, profile)
     core = CompanionCore(cfg, profile, options)
@@ -628,8 +621,6 @@ def write_csv(result: ReplayResult, path: str | Path, *, progress: bool = False)
     for times; NaN as ``nan``): the text of Python's ``%`` formatting, produced vectorised
     (``companion.csv_format.format_rows``). ``progress``: a bar on stderr for long results.
     Returns the columns written."""
-    from companion.csv_format import format_rows
-
     names, fmts = _csv_formats(result)
     values = [result.columns[c] for c in names]
     p = Path(path)

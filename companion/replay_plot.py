@@ -1,19 +1,33 @@
-"""The replay figure: setpoint, estimate, truth, commands and flow against time (matplotlib, Agg)."""
+"""The replay figure: setpoint, estimate, truth, commands and flow against time (a matplotlib
+``Figure`` drawn to a file: no backend chosen, no global matplotlib state changed).
+
+It plots any result with the replay's columns (``PlottedReplay``, which ``replay.ReplayResult``
+is), so this module does not import ``companion.replay``, whose ``--plot`` imports it (issue 13:
+no import cycle); it is imported only when a plot is asked for (matplotlib's start-up).
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Protocol
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from companion.replay import ReplayResult  # noqa: E402
+from companion.core import GyroSource
+from companion.profiles import Profile
 
 
-def plot_replay(result: ReplayResult, path: str | Path) -> Path:
+class PlottedReplay(Protocol):
+    """What the figure reads of a replay (``companion.replay.ReplayResult``)."""
+
+    recording: str
+    profile: Profile
+    gyro_source: GyroSource
+    columns: dict[str, np.ndarray]
+
+
+def plot_replay(result: PlottedReplay, path: str | Path) -> Path:
     """Four panels against ``t_s`` (s from the first record), x solid and y dashed: velocity
     (setpoint, estimate, truth when the recording has LOCAL_POSITION_NED), attitude commands
     (replayed, and recorded when present, deg), flow (counts per frame for the paper profile,
@@ -22,7 +36,8 @@ def plot_replay(result: ReplayResult, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     c = result.columns
     t = c["t_s"]
-    fig, axes = plt.subplots(4, 1, figsize=(11, 10), sharex=True)
+    fig = Figure(figsize=(11, 10))
+    axes = fig.subplots(4, 1, sharex=True)
     ax = axes[0]
     for axis, style in (("x", "-"), ("y", "--")):
         ax.plot(t, c[f"v{axis}_set_m_s"], style, color="k", lw=1.0, label=f"setpoint {axis}")
@@ -72,5 +87,4 @@ def plot_replay(result: ReplayResult, path: str | Path) -> Path:
         a.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path

@@ -47,11 +47,14 @@ import numpy as np
 from scipy import signal
 
 from companion.advice import actions, recorded_parameters
-from companion.config import Config
+from companion.config import Config, load_config
 from companion.errors import RecordingError
+from companion.importers.common import ReadGrid, find_read_grid
+from companion.mavlink_ids import DOWNWARD
 from companion.profiles import GYRO_MESSAGES, Profile, detect_profile, flow_columns
-from companion.recording import MessageTable, Recording, recording_name, recording_stem
+from companion.recording import MessageTable, Recording, load_recording, recording_name, recording_stem
 from companion.report import Finding, Fit, Report, Unexplained, Window
+from companion.report_html import write_html_report
 
 GRAVITY_M_S2 = 9.80665
 #: quantization noise of one reading, counts RMS (uniform error of +-0.5 count)
@@ -216,7 +219,7 @@ def extract_series(rec: Recording, cfg: Config, profile: str | None = None) -> S
         raise RecordingError(f"{name}: the sensor diagnosis needs DISTANCE_SENSOR (range to the ground)")
     ds = rec.tables["DISTANCE_SENSOR"]
     dist_cm = np.asarray(ds["current_distance"], dtype=float)
-    ok = (np.asarray(ds["orientation"]) == 25) & (dist_cm >= np.asarray(ds["min_distance"], dtype=float)) \
+    ok = (np.asarray(ds["orientation"]) == DOWNWARD) & (dist_cm >= np.asarray(ds["min_distance"], dtype=float)) \
         & (dist_cm <= np.asarray(ds["max_distance"], dtype=float))
     if not np.any(ok):
         raise RecordingError(f"{name}: no valid downward (orientation 25) DISTANCE_SENSOR readings")
@@ -229,59 +232,6 @@ def extract_series(rec: Recording, cfg: Config, profile: str | None = None) -> S
 
 # ---------------------------------------------------------------------------------------------
 # Timing of the log
-
-
-@dataclass(frozen=True)
-class ReadGrid:
-    """How logged rows map onto the flow sensor's reads at ``phase_s + k * period_s``.
-
-    ``slot``: the read each row holds (int64), or None when the rows alone cannot tell (rows
-    never closer than one read period: every row is then a distinct reading). ``agreement``:
-    fraction of value changes that fall on a slot change (NaN without a phase).
-    """
-
-    period_s: float
-    phase_s: float | None
-    slot: np.ndarray | None
-    agreement: float
-    method: str
-
-
-def find_read_grid(time_s: np.ndarray, readings: np.ndarray, period_s: float, *,
-                   min_agreement: float = 0.95) -> ReadGrid:
-    """Find the read grid from rows that sample faster than the sensor is read.
-
-    ``readings``: (n, k) values that identify a reading (counts and quality). A new reading can
-    only appear when a row crosses a read time, so the phase is the one that puts the most value
-    changes on slot changes and the fewest slot changes without a value change. Used only when
-    at least 20 % of row steps are shorter than 0.9 read periods.
-    """
-    t = np.asarray(time_s, dtype=float)
-    n = len(t)
-    steps = np.diff(t)
-    if n < 3 or np.mean(steps < 0.9 * period_s) < 0.2:
-        return ReadGrid(period_s, None, None, float("nan"),
-                        "rows are never closer than one read period, so each row is a distinct reading")
-    vals = np.asarray(readings, dtype=float).reshape(n, -1)
-    change = np.any(vals[1:] != vals[:-1], axis=1)
-    phases = np.linspace(0.0, period_s, 200, endpoint=False)
-    scores = np.empty(len(phases))
-    for i, p in enumerate(phases):
-        slot = np.floor((t - t[0] - p) / period_s)
-        cross = slot[1:] != slot[:-1]
-        scores[i] = np.sum(change == cross)
-    best = np.flatnonzero(scores == scores.max())
-    p = float(phases[best[len(best) // 2]])
-    slot = np.floor((t - t[0] - p) / period_s).astype(np.int64)
-    cross = slot[1:] != slot[:-1]
-    agreement = float(np.sum(change & cross) / max(1, np.sum(change)))
-    if agreement < min_agreement:
-        return ReadGrid(period_s, None, None, agreement,
-                        f"no read phase explains the value changes (best {100 * agreement:.0f} %); "
-                        "rows treated as distinct readings")
-    return ReadGrid(period_s, (t[0] + p) % period_s, slot, agreement,
-                    f"read grid of {1e3 * period_s:g} ms found from the rows: {100 * agreement:.1f} % of value "
-                    f"changes fall on a new read slot")
 
 
 @dataclass
@@ -1690,8 +1640,6 @@ def _leg_reference(m: DocumentedMotion) -> str:
 def write_report_dir(d: SensorDiagnosis, report_dir: Path) -> Path:
     """Write ``<stem>_sensor.png``, ``report.md`` and ``report.html`` (the same, one page with the
     plot embedded) into ``report_dir``; returns the .md path."""
-    from companion.report_html import write_html_report
-
     report_dir.mkdir(parents=True, exist_ok=True)
     stem = recording_stem(d.series.name)
     png = report_dir / f"{stem}_sensor.png"
@@ -1753,9 +1701,6 @@ def summary_lines(rep: Report) -> list[str]:
 def run_sensor_cli(args: Any) -> int:
     """``python -m companion diagnose RECORDING [--sensor-config MAP] [--config] [--profile]
     [--json OUT] [--report DIR]`` for a recording without commands: the whole command."""
-    from companion.config import load_config
-    from companion.recording import load_recording
-
     rec = load_recording(args.recording, sensor_config=getattr(args, "sensor_config", None),
                          progress=sys.stderr.isatty())
     cfg = load_config(getattr(args, "config", None))

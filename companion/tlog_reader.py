@@ -47,8 +47,8 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion import native
+from companion.columnar import MessageTable, Recording, is_gzip_path, read_recording_bytes
 from companion.errors import RecordingError
-from companion.recording import MessageTable, Recording, is_gzip_path, read_recording_bytes
 
 STX_V1 = 0xFE
 STX_V2 = 0xFD

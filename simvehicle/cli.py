@@ -6,7 +6,10 @@ import argparse
 import json
 from collections.abc import Sequence
 
+from companion.config import load_config
 from companion.errors import check_output, run_command, writing
+from companion.profiles import Profile
+from simvehicle.scenarios import SCENARIOS, figures, run_named
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -77,10 +80,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _scenario(args: argparse.Namespace) -> int:
-    from companion.config import load_config
-    from companion.profiles import Profile
-    from simvehicle.scenarios import figures, run_named
-
     for flag, path in (("--tlog", args.tlog), ("--plot", args.plot), ("--json", args.json)):
         if path and path != "-":
             check_output(path, flag)
@@ -96,7 +95,6 @@ def _scenario(args: argparse.Namespace) -> int:
             fh.write(text + "\n")
     if args.plot:
         from simvehicle.plots import plot_run
-        from simvehicle.scenarios import SCENARIOS
 
         scenario = SCENARIOS.get(args.name)
         with writing("--plot", args.plot):

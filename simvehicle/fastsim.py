@@ -55,10 +55,11 @@ from typing import Any
 
 import numpy as np
 
-from companion.config import Config
+from companion.config import Config, load_config
 from companion.controller import _axis as _pi_axis_py
 from companion.core import CompanionCore
 from companion.errors import ConfigError
+from companion.estimator import frame_spacing_array
 from companion.estimator import velocity_from_flow as _velocity_from_flow_py
 from companion.profiles import FlowColumns
 from simvehicle.scenarios import Run, Scenario
@@ -798,8 +799,6 @@ def _simulate(pb: _Problem) -> BatchResult:
     W = _weights_for(T, pb.nodes, np.array(wps), np.array(zetas), P[:, P_C], np.array(tau_ds), alt_varies)
     tt = np.arange(n_t, dtype=float) * T
     tc = np.round(tt * 1e6) * 1e-6 if pb.mavlink else tt
-    from companion.estimator import frame_spacing_array
-
     dtc = frame_spacing_array(tc, T)
     slots = np.full(len(COLUMNS), -1, dtype=np.int64)
     kept = [c for c in pb.columns if c != "t_s"]
@@ -874,8 +873,6 @@ def demanding_flight(duration_s: float, *, frame_period_s: float = 0.02, seed: i
 
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernel with a two-frame flight."""
-    from companion.config import load_config
-
     simulate_batch(load_config(), 1, duration_s=0.04, columns=("vx_m_s",))
 
 

@@ -57,7 +57,13 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from companion.config import CONFIG_DIR
+from companion.config import CONFIG_DIR, load_config
+from companion.core import CompanionCore
+from companion.inbound import MessageRouter
+from companion.mavlink_ids import COMPANION_COMPONENT
+from companion.profiles import Profile
+from companion.rotation import euler_to_quaternion
+from companion.tlog_writer import TlogWriter, mav_encoder
 
 GENERATOR_VERSION = 3
 
@@ -607,14 +613,6 @@ def apply_loss(t_s: np.ndarray, loss: Loss, rng: np.random.Generator) -> np.ndar
     return keep
 
 
-def euler_to_quaternion(roll: float, pitch: float, yaw: float) -> list[float]:
-    """[w, x, y, z] of the ZYX rotation (written here again, not imported)."""
-    hr, hp, hy = 0.5 * roll, 0.5 * pitch, 0.5 * yaw
-    cr, sr, cp, sp, cy, sy = math.cos(hr), math.sin(hr), math.cos(hp), math.sin(hp), math.cos(hy), math.sin(hy)
-    return [cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy]
-
-
 def _f32(x: float) -> float:
     return float(np.float32(x))
 
@@ -643,12 +641,6 @@ class Flight:
 def simulate(spec: FlightSpec) -> Flight:
     """Fly ``spec`` closed loop with the companion and make every message (see the module doc)."""
     from pymavlink.dialects.v20 import ardupilotmega as mav
-
-    from companion.config import load_config
-    from companion.core import CompanionCore
-    from companion.inbound import MessageRouter
-    from companion.profiles import Profile
-    from companion.tlog_writer import mav_encoder
 
     cfg = load_config_text(nominal_config_text(spec), f"gen{spec.seed}.toml", load_config)
     prof = Profile(spec.sensors.profile)
@@ -701,7 +693,7 @@ def simulate(spec: FlightSpec) -> Flight:
     rmin_cm, rmax_cm = int(round(sen.range_min_m * 100)), int(round(sen.range_max_m * 100))
 
     venc = mav_encoder(1, 1)
-    cenc = mav_encoder(1, 191)
+    cenc = mav_encoder(1, COMPANION_COMPONENT)
     packets: list[tuple[float, int, bytes, str, int]] = []
     frame = [0]
 
@@ -1045,8 +1037,6 @@ class Generated:
 def write_flight(spec: FlightSpec, flight: Flight, folder: str | Path, stem: str) -> Generated:
     """Write ``stem.tlog`` (records in arrival order), ``stem.toml`` (nominal config) and
     ``stem.truth.json`` into ``folder``."""
-    from companion.tlog_writer import TlogWriter
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     tlog = folder / f"{stem}.tlog"

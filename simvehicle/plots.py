@@ -1,17 +1,15 @@
-"""The paper's figures for a scenario run (matplotlib, Agg backend: files only, no screen)."""
+"""The paper's figures for a scenario run (matplotlib figures drawn to files, no screen: the
+``Figure`` API, which needs no backend and changes no global matplotlib state)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from simvehicle.scenarios import Pair, Run  # noqa: E402
+from simvehicle.scenarios import Pair, Run
 
 
 def force_steps(force: Callable[[float], Pair], t_s: np.ndarray) -> list[tuple[float, float, float]]:
@@ -35,14 +33,15 @@ def _force_label(fx: float, fy: float) -> str:
 
 
 def run_figure(run: Run, *, force: Callable[[float], Pair] | None = None,
-               title: str | None = None) -> plt.Figure:
+               title: str | None = None) -> Figure:
     """The figure ``plot_run`` saves. ``force`` is the external force the run was flown with (the
     scenario's own, body axes, N): each change is drawn as a vertical line on every panel and
     labelled with its size on the velocity panel."""
     c = run.columns
     if run.name in ("rail", "triangle"):
         keys = [k for k in c if k.startswith("counts_")]
-        fig, axes = plt.subplots(len(keys), 1, figsize=(9, 2.2 * len(keys)), squeeze=False)
+        fig = Figure(figsize=(9, 2.2 * len(keys)))
+        axes = fig.subplots(len(keys), 1, squeeze=False)
         for ax, k in zip(axes[:, 0], keys, strict=True):
             tag = k.removeprefix("counts_")
             ax.step(c[f"t_s_{tag}"], c[k], where="post", lw=0.8)
@@ -52,7 +51,8 @@ def run_figure(run: Run, *, force: Callable[[float], Pair] | None = None,
         axes[-1, 0].set_xlabel("time (s)")
     else:
         t = c["t_s"]
-        fig, axes = plt.subplots(4, 1, figsize=(9, 10), sharex=True, squeeze=False)
+        fig = Figure(figsize=(9, 10))
+        axes = fig.subplots(4, 1, sharex=True, squeeze=False)
         ax = axes[0, 0]
         ax.plot(t, c["vx_set_m_s"], "k:", lw=1.2, label="setpoint vx")
         ax.plot(t, c["vy_set_m_s"], color="0.45", ls="-.", lw=1.0, label="setpoint vy")
@@ -99,5 +99,4 @@ def plot_run(run: Run, path: str | Path, *, force: Callable[[float], Pair] | Non
     path.parent.mkdir(parents=True, exist_ok=True)
     fig = run_figure(run, force=force, title=title)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path

@@ -37,11 +37,13 @@ from typing import Any
 
 import numpy as np
 
-from companion.config import Config, Effects, WindForce
+from companion.config import Config, Effects, WindForce, load_config
 from companion.diagnose.channels import FlightData, extract
-from companion.errors import RecordingError
+from companion.errors import RecordingError, check_output, writing
 from companion.fitted_model import heldout_split_s
+from companion.mavlink_ids import COMPANION_COMPONENT
 from companion.recording import Recording, load_recording
+from companion.report_html import write_refly_html
 from simvehicle.fastsim import simulate_batch
 
 #: (channel, unit) in the order reports list them; pitch_cmd and roll_cmd judge a model
@@ -59,7 +61,6 @@ TURB_EDGE_FRAMES = 10
 TURB_SEEDS = 8
 #: the correlation time assumed for the random force (s): the simulator's turbulence default
 TURB_TAU_S = 1.0
-COMPANION_COMPONENT = 191
 
 
 def nominal_of(cfg: Config) -> Config:
@@ -496,10 +497,6 @@ def markdown(results: list[Result], cfg: Config, images: list[str]) -> str:
 def run_cli(args: Any) -> int:
     """``python -m simvehicle refly`` (arguments in ``simvehicle/cli.py``)."""
     import json
-
-    from companion.config import load_config
-    from companion.errors import check_output, writing
-    from companion.report_html import write_refly_html
 
     if args.json:
         check_output(args.json, "--json")

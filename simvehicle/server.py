@@ -63,8 +63,11 @@ from companion.config import (
     with_effects,
 )
 from companion.errors import LinkError, UsageError, check_output, output_error
-from companion.outbound import COMPANION_COMPONENT, VELOCITY_TYPE_MASK, quaternion_to_euler
-from companion.profiles import FLOW_MESSAGE, Profile
+from companion.mavlink_ids import COMPANION_COMPONENT, GUIDED_NOGPS
+from companion.outbound import VELOCITY_TYPE_MASK
+from companion.profiles import FLOW_MESSAGE, Profile, detect_profile, flow_columns
+from companion.recording import load_recording
+from companion.rotation import quaternion_to_euler
 from companion.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S, TlogWriter
 from simvehicle import telemetry
 from simvehicle.scenarios import SCENARIOS, Run, Scenario
@@ -425,7 +428,7 @@ class Vehicle:
 
     @property
     def guided(self) -> bool:
-        return self.custom_mode == link.GUIDED_NOGPS
+        return self.custom_mode == GUIDED_NOGPS
 
     @property
     def boot_s(self) -> float:
@@ -1114,9 +1117,6 @@ def recording_run(path: str | Path, *, name: str = "loop") -> Run:
     frame takes the companion's SET_ATTITUDE_TARGET for it when there is one). Only the first
     boot is read when the recording holds a SIM_REBOOT.
     """
-    from companion.profiles import detect_profile, flow_columns
-    from companion.recording import load_recording
-
     cfg = load_config()
     rec = load_recording(path)
     lp = rec.table("LOCAL_POSITION_NED").from_sender(compid=1)

@@ -12,11 +12,10 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from companion.outbound import euler_to_quaternion
+from companion.mavlink_ids import DOWNWARD, GUIDED_NOGPS
 from companion.profiles import Profile
+from companion.rotation import euler_to_quaternion
 from simvehicle.sim import FrameSample
-
-GUIDED_NOGPS = 20
 
 
 def _i16(x: float) -> int:
@@ -51,7 +50,7 @@ def distance_sensor(enc: Any, s: FrameSample, min_m: float, max_m: float) -> Any
     cm = s.range_m * 100.0
     cur = 0 if not math.isfinite(cm) else int(max(0, min(65535, round(cm))))
     return enc.distance_sensor_encode(int(round(s.t_s * 1e3)), int(round(min_m * 100)), int(round(max_m * 100)),
-                                      cur, mav.MAV_DISTANCE_SENSOR_LASER, 0, 25, 255)
+                                      cur, mav.MAV_DISTANCE_SENSOR_LASER, 0, DOWNWARD, 255)
 
 
 def attitude(enc: Any, s: FrameSample) -> Any:

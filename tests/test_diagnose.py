@@ -21,6 +21,7 @@ from numpy.testing import assert_allclose
 from scipy.interpolate import CubicSpline
 from scipy.optimize import least_squares
 
+from companion import sensor_diagnose as sensor
 from companion.config import GyroBias, load_config, with_effects
 from companion.diagnose.attitude import AttitudeProblem, discretise, expm_discretise
 from companion.diagnose.channels import FlightData
@@ -445,7 +446,6 @@ def test_px4_profile_recording_is_read_in_the_papers_convention(tmp_path):
 
 
 def test_recording_without_commands_goes_to_sensor_mode(tmp_path, monkeypatch):
-    sensor = pytest.importorskip("companion.sensor_diagnose")
     from pymavlink.dialects.v20 import ardupilotmega as mav
 
     from companion import cli

@@ -369,10 +369,10 @@ def test_a_replay_of_a_lossless_recording_reproduces_its_commands(tmp_path: Path
                     str(g.config)], cwd=ROOT, check=True, capture_output=True)
     rows = np.genfromtxt(csv, delimiter=",", names=True)
     msgs = read_messages(g.tlog)
-    from companion.diagnose.channels import quaternion_to_euler
+    from companion.rotation import quaternions_to_euler
 
     q = np.array([m.q for m in msgs["SET_ATTITUDE_TARGET"]])
-    roll, pitch, _ = quaternion_to_euler(q)
+    roll, pitch, _ = quaternions_to_euler(q)
     n = min(len(rows), len(roll))
     assert n > 500
     assert np.max(np.abs(rows["roll_cmd_rad"][:n] - roll[:n])) < 1e-5

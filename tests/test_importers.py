@@ -21,10 +21,11 @@ from numpy.testing import assert_allclose, assert_array_equal
 
 from companion.errors import RecordingError
 from companion.estimator import scene_rate, velocity_from_flow
-from companion.importers.dataflash import euler_to_quaternion, quaternion_to_euler, read_dataflash
+from companion.importers.dataflash import read_dataflash
 from companion.importers.ulog import read_ulog
 from companion.profiles import Profile, flow_columns
 from companion.recording import Recording, load_recording
+from companion.rotation import euler_to_quaternions, quaternions_to_euler
 
 DATA = Path(__file__).parent / "data" / "importers"
 BIN = DATA / "copter_flow.bin"
@@ -181,7 +182,7 @@ def test_dataflash_gyro_range_attitude_planted(df: Recording) -> None:
     tgt = df.table("ATTITUDE_TARGET")
     assert tgt["q"].shape == (len(tgt), 4)
     assert_allclose(np.linalg.norm(tgt["q"], axis=1), 1.0, atol=1e-12)
-    roll, pitch, yaw = quaternion_to_euler(tgt["q"])
+    roll, pitch, yaw = quaternions_to_euler(tgt["q"])
     off = np.radians(mf.DF_DES_OFFSET_DEG)
     assert_allclose(roll, planted[:, 0] + off[0], atol=1e-6)
     assert_allclose(pitch, planted[:, 1] + off[1], atol=1e-6)
@@ -257,7 +258,7 @@ def test_dataflash_legacy_layouts_and_gyr_fallback(tmp_path: Path) -> None:
     att = rec.table("ATTITUDE")
     assert_allclose(att["roll"], [math.radians(-12.5)])
     assert_allclose(att["yaw"], [math.radians(181.0 - 360.0)])
-    roll, pitch, yaw = quaternion_to_euler(rec.table("ATTITUDE_TARGET")["q"])
+    roll, pitch, yaw = quaternions_to_euler(rec.table("ATTITUDE_TARGET")["q"])
     assert_allclose([roll[0], pitch[0], yaw[0]], np.radians([-12.34, 3.21, -90.0]), atol=1e-9)
     assert np.isnan(att["rollspeed"][0]) and rec.table("ATTITUDE_TARGET")["type_mask"][0] == 7
     rng = rec.table("DISTANCE_SENSOR")
@@ -421,7 +422,7 @@ def test_ulog_gyro_range_attitude_planted(ul: Recording) -> None:
     tgt = ul.table("ATTITUDE_TARGET")
     planted = np.array([tr.attitude(t) for t in tgt.t_s * 1e6])
     off = np.radians(mf.UL_SETPOINT_OFFSET_DEG)
-    expected_q = euler_to_quaternion(planted[:, 0] + off[0], planted[:, 1] + off[1], planted[:, 2] + off[2])
+    expected_q = euler_to_quaternions(planted[:, 0] + off[0], planted[:, 1] + off[1], planted[:, 2] + off[2])
     assert_allclose(tgt["q"], expected_q, atol=1e-6)
     assert_allclose(tgt["thrust"], 0.55, rtol=1e-6)
     assert_allclose(tgt["body_roll_rate"], mf.UL_RATES_SP[0], rtol=1e-6)

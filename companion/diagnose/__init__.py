@@ -23,15 +23,17 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
+from companion import sensor_diagnose
 from companion.config import Config, load_config
-from companion.errors import RecordingError, UsageError, check_output, writing
+from companion.diagnose.channels import has_commands
+from companion.diagnose.diagnosis import STAGES, Diagnosis, diagnose
+from companion.diagnose.markdown import write_report
+from companion.errors import UsageError, check_output, writing
+from companion.fitted_model import fitted_findings, heldout_split_s, model_toml, write_model
 from companion.recording import Recording, load_recording
 from companion.report import Report
-
-if TYPE_CHECKING:
-    from companion.diagnose.diagnosis import Diagnosis
+from companion.report_html import write_html_report
 
 __all__ = ["run_cli", "diagnose_recording", "summary"]
 
@@ -39,14 +41,10 @@ __all__ = ["run_cli", "diagnose_recording", "summary"]
 def diagnose_recording(path: str | Path, *, config: str | Path | None = None, profile: str | None = None,
                        report_dir: str | Path | None = None) -> Diagnosis:
     """Load, diagnose, optionally write the Markdown and HTML reports; returns the ``Diagnosis``."""
-    from companion.diagnose.diagnosis import diagnose
-
     cfg = load_config(config)
     rec = load_recording(path)
     diag = diagnose(rec, cfg, profile=profile)
     if report_dir is not None:
-        from companion.diagnose.markdown import write_report
-
         _write_html(diag, write_report(diag, report_dir))
     return diag
 
@@ -54,18 +52,11 @@ def diagnose_recording(path: str | Path, *, config: str | Path | None = None, pr
 def _write_html(diag: Diagnosis, markdown_path: Path) -> Path:
     """``report.html`` beside the Markdown report: the same content, plots embedded, the first line
     in plain words."""
-    from companion.report_html import write_html_report
-
     return write_html_report(diag.report, markdown_path, q_rad_per_count=diag.cfg.flow_sensor.q_rad_per_count)
 
 
 def _sensor_mode(args: argparse.Namespace) -> int:
-    try:
-        from companion.sensor_diagnose import run_sensor_cli
-    except ImportError:
-        raise RecordingError(f"{Path(args.recording).name}: no commanded attitude (SET_ATTITUDE_TARGET or "
-                             f"ATTITUDE_TARGET) and the sensor-only diagnosis is not installed") from None
-    return int(run_sensor_cli(args))
+    return int(sensor_diagnose.run_sensor_cli(args))
 
 
 def run_cli(args: argparse.Namespace) -> int:
@@ -77,8 +68,6 @@ def run_cli(args: argparse.Namespace) -> int:
         if model_out:
             raise UsageError("--model-out needs a closed-loop flight (with commands), not a sensor-only recording")
         return _sensor_mode(args)
-    from companion.diagnose.channels import has_commands
-
     t_start = time.perf_counter()
     cfg = load_config(args.config)
     rec = load_recording(args.recording, progress=sys.stderr.isatty())  # a bar on a terminal only
@@ -87,8 +76,6 @@ def run_cli(args: argparse.Namespace) -> int:
             raise UsageError(f"{Path(args.recording).name}: --model-out needs a closed-loop flight; this recording has "
                              "no commanded attitude")
         return _sensor_mode(args)
-    from companion.diagnose.diagnosis import STAGES, diagnose
-
     bar = None
     if sys.stderr.isatty():  # a progress bar on a terminal only; quiet in pipes, logs and CI
         from tqdm import tqdm
@@ -110,8 +97,6 @@ def run_cli(args: argparse.Namespace) -> int:
     if args.json:
         report.write_json(args.json)
     if args.report:
-        from companion.diagnose.markdown import write_report
-
         out = write_report(diag, args.report)
         html_out = _write_html(diag, out)
     if model_out:
@@ -134,9 +119,6 @@ def write_model_out(rec: Recording, cfg: Config, whole: Diagnosis, path: str | P
     """``--model-out``: the fitted model of ``companion.fitted_model``. The vehicle's properties are
     fitted on the first half of the flight's usable frames (a second diagnosis of that half), the
     wind windows come from ``whole``; a flight too short to split is fitted whole."""
-    from companion.diagnose.diagnosis import diagnose
-    from companion.fitted_model import fitted_findings, heldout_split_s, model_toml, write_model
-
     t = whole.data.t_s
     split = heldout_split_s(t)
     span = (float(t[0]), float(t[-1]))

@@ -27,11 +27,11 @@ import numpy as np
 
 from companion.config import Config
 from companion.errors import RecordingError
+from companion.mavlink_ids import COMPANION_COMPONENT, DOWNWARD
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, Profile, detect_profile, flow_columns
 from companion.recording import MessageTable, Recording
+from companion.rotation import quaternions_to_euler
 
-COMPANION_COMPONENT = 191
-DOWNWARD = 25
 #: a segment shorter than this is not used (s)
 MIN_SEGMENT_S = 5.0
 #: gaps in a signal up to this long are bridged from its neighbours (lost telemetry, slow logging);
@@ -143,17 +143,6 @@ class FlightData:
 
 # ---------------------------------------------------------------------------------------------
 # helpers
-
-
-def quaternion_to_euler(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(roll, pitch, yaw) rad from quaternions [w, x, y, z] of shape (n, 4) (ZYX, as
-    ``companion.outbound.quaternion_to_euler``, vectorised)."""
-    q = np.asarray(q, dtype=float).reshape(-1, 4)
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
-    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return roll, pitch, yaw
 
 
 def _sorted_unique(t: np.ndarray, *cols: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -527,7 +516,7 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
     if sat is not None and len(sat) and np.any(sat.compid == COMPANION_COMPONENT):
         sat = sat.select(sat.compid == COMPANION_COMPONENT)
         ct, q = _sorted_unique(np.asarray(sat["time_boot_ms"], float) * 1e-3, np.asarray(sat["q"], float))
-        cr, cp, _ = quaternion_to_euler(q)
+        cr, cp, _ = quaternions_to_euler(np.reshape(q, (-1, 4)))
         # the command computed from frame k carries frame k's time and acts from frame k+1
         j = _nearest(tb, ct, 0.4 * T)
         rec_k = j >= 0
@@ -545,7 +534,7 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
     else:
         atg = _from_vehicle(rec.tables["ATTITUDE_TARGET"], sysid)
         ct, q = _sorted_unique(np.asarray(atg["time_boot_ms"], float) * 1e-3, np.asarray(atg["q"], float))
-        cr, cp, _ = quaternion_to_euler(q)
+        cr, cp, _ = quaternions_to_euler(np.reshape(q, (-1, 4)))
         roll_u = _interp_gapped(tb, ct, cr, bridge)
         pitch_u = _interp_gapped(tb, ct, cp, bridge)
         cmd_rec = _recorded(tb, ct, 0.6 * T)

@@ -37,14 +37,12 @@ from typing import Any
 
 import numpy as np
 
+from companion.columnar import MessageTable, Recording, open_recording
 from companion.config import bind, read_toml
 from companion.errors import ConfigError, RecordingError
+from companion.importers.common import GRAVITY_M_S2, find_read_grid
+from companion.mavlink_ids import DOWNWARD, MAV_DISTANCE_SENSOR_LASER
 from companion.progress import StageCallback
-from companion.recording import MessageTable, Recording, open_recording
-
-GRAVITY_M_S2 = 9.80665
-MAV_SENSOR_ROTATION_PITCH_270 = 25
-MAV_DISTANCE_SENSOR_LASER = 0
 
 TIME_UNITS_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
 GYRO_UNITS_RAD_S = {"rad/s": 1.0, "deg/s": math.pi / 180.0, "mrad/s": 1e-3}
@@ -265,7 +263,7 @@ def read_csv(path: str | Path, sensor_config_path: str | Path, *, progress: Stag
     dist = {"time_boot_ms": t_s * 1e3, "min_distance": np.full(n, cmap.range.min_m * 100.0),
             "max_distance": np.full(n, cmap.range.max_m * 100.0), "current_distance": range_m * 100.0,
             "type": np.full(n, MAV_DISTANCE_SENSOR_LASER, np.uint8), "id": np.zeros(n, np.uint8),
-            "orientation": np.full(n, MAV_SENSOR_ROTATION_PITCH_270, np.uint8),
+            "orientation": np.full(n, DOWNWARD, np.uint8),
             "covariance": np.full(n, 255, np.uint8), "signal_quality": np.zeros(n, np.uint8)}
     n_invalid = int(np.sum((range_m < cmap.range.min_m) | (range_m > cmap.range.max_m)))
     if n_invalid:
@@ -303,8 +301,6 @@ def read_csv(path: str | Path, sensor_config_path: str | Path, *, progress: Stag
         "OPTICAL_FLOW": _table("OPTICAL_FLOW", t_s, of, row),
     }
     if cmap.flow.repeated_readings == "drop":
-        from companion.sensor_diagnose import find_read_grid
-
         grid = find_read_grid(t_s, np.column_stack([fx, fy, quality]), period_s)
         if grid.slot is None:
             notes.append(f"repeated_readings = drop: nothing dropped ({grid.method})")

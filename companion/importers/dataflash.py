@@ -24,8 +24,8 @@ of all tables by time (ties: file position); sysid 1, compid 1. pymavlink's ``DF
 indexes the file (formats and message offsets, robust to corrupt stretches); the columns are
 then decoded with numpy in one pass per message type.
 
-The helpers at the bottom (``build_table``, ``assign_records``, quaternion conversions,
-``nearest_index``) are shared with ``companion.importers.ulog``.
+The helpers the importers share (``build_table``, ``assign_records``, ``nearest_index``) are in
+``companion.importers.common``, the attitude conversions in ``companion.rotation``.
 """
 
 from __future__ import annotations
@@ -39,16 +39,13 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.columnar import MessageTable, Recording, read_recording_bytes
 from companion.errors import RecordingError
+from companion.importers.common import GRAVITY_M_S2, Columns, assign_records, build_table, nearest_index
+from companion.mavlink_ids import MAV_DISTANCE_SENSOR_UNKNOWN
 from companion.progress import StageCallback
-from companion.recording import MessageTable, Recording, read_recording_bytes
+from companion.rotation import euler_to_quaternions
 
-#: standard gravity used by ArduPilot (GRAVITY_MSS) for RAW_IMU milli-g
-GRAVITY_M_S2 = 9.80665
-#: MAV_SENSOR_ORIENTATION / ArduPilot Rotation: ROTATION_PITCH_270, facing down
-ORIENTATION_DOWN = 25
-#: MAV_DISTANCE_SENSOR_UNKNOWN
-DISTANCE_SENSOR_TYPE_UNKNOWN = 4
 #: ArduPilot RangeFinder::Status::Good
 RFND_STATUS_GOOD = 4
 
@@ -80,8 +77,6 @@ _DF_TYPES: dict[str, tuple[str | tuple[str, tuple[int]], float | None]] = {
     "q": ("<i8", None),
     "Q": ("<u8", None),
 }
-
-Columns = dict[str, np.ndarray]
 
 
 #: the stages ``read_dataflash`` reports to its ``progress`` callback, in order
@@ -463,7 +458,7 @@ def _distance_sensor(c: Columns, ofs: np.ndarray, params: Mapping[str, float],
         "min_distance": min_cm,
         "max_distance": max_cm,
         "current_distance": dist_m * 100.0,
-        "type": np.full(n, DISTANCE_SENSOR_TYPE_UNKNOWN, np.uint8),
+        "type": np.full(n, MAV_DISTANCE_SENSOR_UNKNOWN, np.uint8),
         "id": inst.astype(np.uint8),
         "orientation": orient.astype(np.uint8),
         "covariance": np.full(n, 255, np.uint8),
@@ -504,7 +499,7 @@ def _attitude(c: Columns, ofs: np.ndarray, rate: tuple[Columns, np.ndarray] | No
     target = {
         "time_boot_ms": t_us / 1000.0,
         "type_mask": np.where(have_rates, 0, 7).astype(np.uint8),
-        "q": euler_to_quaternion(deg(c["DesRoll"].astype(np.float64)), deg(c["DesPitch"].astype(np.float64)),
+        "q": euler_to_quaternions(deg(c["DesRoll"].astype(np.float64)), deg(c["DesPitch"].astype(np.float64)),
                                  wrap_pi(deg(c["DesYaw"].astype(np.float64)))),
         "body_roll_rate": rates["RDes"],
         "body_pitch_rate": rates["PDes"],
@@ -525,67 +520,6 @@ def _rate_table(c: Columns, ofs: np.ndarray) -> tuple[MessageTable, np.ndarray]:
     return build_table("RATE", t_us * 1e-6, fields), ofs
 
 
-# --------------------------------------------------------------------------- shared helpers
-
-
-def build_table(name: str, t_s: np.ndarray, fields: Columns, *, sysid: int = 1,
-                compid: int = 1) -> MessageTable:
-    """A MessageTable with ``t_s`` (s), sender ids and a placeholder ``record`` (set by
-    ``assign_records``)."""
-    n = len(t_s)
-    return MessageTable(
-        name=name,
-        t_s=np.asarray(t_s, dtype=np.float64),
-        sysid=np.full(n, sysid, np.uint8),
-        compid=np.full(n, compid, np.uint8),
-        record=np.arange(n, dtype=np.int64),
-        fields=fields,
-    )
-
-
-def assign_records(tables: dict[str, MessageTable], keys: Mapping[str, np.ndarray], notes: list[str]) -> None:
-    """Sort each table by (``t_s``, key) and number all rows of all tables in that order.
-
-    ``keys[name]``: a tie-break per row (e.g. the file offset), equal length to the table.
-    Rewrites ``tables`` in place; a table that was out of time order gets a note.
-    """
-    names = list(tables)
-    for name in names:
-        tab, key = tables[name], np.asarray(keys[name])
-        order = np.lexsort((key, tab.t_s))
-        moved = int(np.sum(order != np.arange(len(order))))
-        if moved:
-            notes.append(f"{name}: {moved} rows out of time order, sorted by time")
-            tables[name] = tab.select(order)
-            keys = {**keys, name: key[order]}
-    if not names:
-        return
-    t_all = np.concatenate([tables[n].t_s for n in names])
-    k_all = np.concatenate([np.asarray(keys[n], dtype=np.float64) for n in names])
-    which = np.concatenate([np.full(len(tables[n]), i) for i, n in enumerate(names)])
-    order = np.lexsort((which, k_all, t_all))
-    rank = np.empty(len(order), np.int64)
-    rank[order] = np.arange(len(order))
-    start = 0
-    for n in names:
-        stop = start + len(tables[n])
-        tables[n].record = rank[start:stop]
-        start = stop
-
-
-def nearest_index(t_ref: np.ndarray, t_query: np.ndarray, tol: float) -> np.ndarray:
-    """Index of the ``t_ref`` sample nearest to each ``t_query`` (both in the same unit,
-    ``t_ref`` sorted), or -1 where the nearest is farther than ``tol``."""
-    t_ref = np.asarray(t_ref, dtype=np.float64)
-    t_query = np.asarray(t_query, dtype=np.float64)
-    if len(t_ref) == 0:
-        return np.full(len(t_query), -1, np.int64)
-    hi = np.clip(np.searchsorted(t_ref, t_query), 0, len(t_ref) - 1)
-    lo = np.clip(hi - 1, 0, len(t_ref) - 1)
-    pick = np.where(np.abs(t_ref[lo] - t_query) <= np.abs(t_ref[hi] - t_query), lo, hi)
-    return np.where(np.abs(t_ref[pick] - t_query) <= tol, pick, -1).astype(np.int64)
-
-
 def _median_spacing(t: np.ndarray, cap_s: float) -> float:
     d = np.diff(np.asarray(t, dtype=np.float64))
     d = d[d > 0]
@@ -595,27 +529,3 @@ def _median_spacing(t: np.ndarray, cap_s: float) -> float:
 def wrap_pi(a: np.ndarray) -> np.ndarray:
     """Angles (rad) wrapped to [-pi, pi)."""
     return (np.asarray(a, dtype=np.float64) + np.pi) % (2.0 * np.pi) - np.pi
-
-
-def euler_to_quaternion(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """ZYX (yaw, then pitch, then roll) Euler angles (rad) -> quaternions [w, x, y, z], shape (n, 4),
-    the MAVLink / PX4 / ArduPilot convention (body FRD relative to NED)."""
-    cr, sr = np.cos(np.asarray(roll) / 2), np.sin(np.asarray(roll) / 2)
-    cp, sp = np.cos(np.asarray(pitch) / 2), np.sin(np.asarray(pitch) / 2)
-    cy, sy = np.cos(np.asarray(yaw) / 2), np.sin(np.asarray(yaw) / 2)
-    return np.stack([
-        cr * cp * cy + sr * sp * sy,
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-    ], axis=-1)
-
-
-def quaternion_to_euler(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Quaternions [w, x, y, z], shape (n, 4) -> ZYX Euler (roll, pitch, yaw) in rad, yaw in [-pi, pi]."""
-    q = np.asarray(q, dtype=np.float64)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    roll = np.arctan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    pitch = np.arcsin(np.clip(2.0 * (w * y - z * x), -1.0, 1.0))
-    yaw = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    return roll, pitch, yaw

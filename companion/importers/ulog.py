@@ -38,25 +38,18 @@ from typing import BinaryIO
 
 import numpy as np
 
+from companion.columnar import MessageTable, Recording, open_recording
 from companion.errors import RecordingError
-from companion.importers.dataflash import (
-    DISTANCE_SENSOR_TYPE_UNKNOWN,
-    GRAVITY_M_S2,
-    assign_records,
-    build_table,
-    nearest_index,
-    quaternion_to_euler,
-)
+from companion.importers.common import GRAVITY_M_S2, Columns, assign_records, build_table, nearest_index
+from companion.mavlink_ids import MAV_DISTANCE_SENSOR_UNKNOWN
 from companion.progress import StageCallback
-from companion.recording import MessageTable, Recording, open_recording
+from companion.rotation import quaternions_to_euler
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 #: flow topics in order of preference
 FLOW_TOPICS = ("vehicle_optical_flow", "optical_flow", "sensor_optical_flow")
 TOPICS = FLOW_TOPICS + ("sensor_combined", "vehicle_angular_velocity", "distance_sensor", "vehicle_attitude",
                         "vehicle_attitude_setpoint", "vehicle_rates_setpoint")
-
-Columns = dict[str, np.ndarray]
 
 #: message types that end the definitions section: add-logged 'A', logging 'L', tagged 'C'
 _DATA_SECTION_TYPES = frozenset(b"ALC")
@@ -285,7 +278,7 @@ def _distance_sensor(instances: list[tuple[int, Columns]]) -> MessageTable:
             "max_distance": c["max_distance"].astype(np.float64) * 100.0,
             "current_distance": c["current_distance"].astype(np.float64) * 100.0,
             "type": (c["type"].astype(np.uint8) if "type" in c
-                     else np.full(n, DISTANCE_SENSOR_TYPE_UNKNOWN, np.uint8)),
+                     else np.full(n, MAV_DISTANCE_SENSOR_UNKNOWN, np.uint8)),
             "id": np.full(n, mid, np.uint8),
             "orientation": c["orientation"].astype(np.uint8),
             # MAVLink: cm^2, 255 = unknown
@@ -321,7 +314,7 @@ def _attitude(c: Columns, rates: tuple[np.ndarray, list[np.ndarray]] | None,
               notes: list[str]) -> MessageTable:
     """vehicle_attitude.q -> ATTITUDE (ZYX Euler, rad) + the nearest body-rate sample (rad/s)."""
     ts = c["timestamp"].astype(np.int64)
-    roll, pitch, yaw = quaternion_to_euler(np.stack(_array(c, "q", 4), axis=-1))
+    roll, pitch, yaw = quaternions_to_euler(np.stack(_array(c, "q", 4), axis=-1))
     n = len(ts)
     speeds = [np.full(n, np.nan) for _ in range(3)]
     if rates is None:
