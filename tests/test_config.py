@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.config import CONFIG_DIR, config_from_dict, load_config
+from companion.config import CONFIG_DIR, REMOVED_KEYS, config_from_dict, load_config
 from companion.errors import ConfigError
 
 CONFIG_FILES = sorted(p for p in CONFIG_DIR.glob("*.toml"))
@@ -21,7 +21,7 @@ def _paper_dict() -> dict:
 
 def test_paper_toml_is_table_vi(paper_cfg):
     c = paper_cfg
-    assert (c.airframe.mass_kg, c.airframe.gravity_m_s2, c.airframe.drag_b_n_s_per_m) == (2.3, 9.81, 0.2)
+    assert (c.airframe.mass_kg, c.airframe.gravity_m_s2) == (2.3, 9.81)
     assert (c.airframe.omega_p_rad_s, c.airframe.zeta) == (5.4, 0.71)
     assert (c.controller.kp_rad_per_m_s, c.controller.ki_rad_per_m) == (0.2, 0.062)
     assert c.controller.tilt_limit_rad == pytest.approx(20 / 57.3, rel=1e-3)
@@ -41,6 +41,17 @@ def test_unknown_key_is_rejected():
     d = _paper_dict()
     d["controller"]["kd_rad_s_per_m"] = 0.1
     with pytest.raises(ConfigError, match="unknown key.*kd_rad_s_per_m"):
+        config_from_dict(d)
+
+
+@pytest.mark.parametrize("section,key", sorted(REMOVED_KEYS))
+def test_a_removed_key_is_rejected_with_its_reason(section, key):
+    """Issue 13: airframe.drag_b_n_s_per_m and companion.gyro_timeout_s were required and read by
+    nothing; a parameter set that still has one is told so in one line."""
+    d = _paper_dict()
+    assert key not in d[section]
+    d[section][key] = 0.1
+    with pytest.raises(ConfigError, match=f"\\[{section}\\]: {key} is no longer a key: .*; delete the line"):
         config_from_dict(d)
 
 
