@@ -49,7 +49,11 @@ from simvehicle.fastsim import simulate_batch
 #: (channel, unit) in the order reports list them; pitch_cmd and roll_cmd judge a model
 CHANNELS = (("pitch_cmd", "rad"), ("roll_cmd", "rad"), ("pitch", "rad"), ("roll", "rad"), ("flow_x", "rad/s"),
             ("flow_y", "rad/s"), ("vx_est", "m/s"), ("vy_est", "m/s"), ("vx", "m/s"), ("vy", "m/s"))
-UNITS = dict(CHANNELS)
+#: the commanded tilt averaged over MEAN_S blocks (``scores``)
+MEAN_S = 1.0
+MEAN_SUFFIX = "_1s"
+MEAN_CHANNELS = (("pitch_cmd_1s", "rad"), ("roll_cmd_1s", "rad"))
+UNITS = dict((*CHANNELS, *MEAN_CHANNELS))
 #: the simulator's column for each channel
 _SIM_COLUMN = {"pitch_cmd": "pitch_cmd_rad", "roll_cmd": "roll_cmd_rad", "pitch": "pitch_rad", "roll": "roll_rad",
                "vx_est": "est_vx_m_s", "vy_est": "est_vy_m_s", "vx": "vx_m_s", "vy": "vy_m_s"}
@@ -263,17 +267,60 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(x * x))) if x.size else math.nan
 
 
+def _mask(track: Track, ch: str, *others: dict[str, np.ndarray]) -> np.ndarray:
+    base = ch.removesuffix(MEAN_SUFFIX)
+    ok = track.score & np.isfinite(track.recorded[base])
+    for o in (track.nominal, track.fitted, *others):
+        ok &= np.isfinite(o[base])
+    return ok
+
+
+def block_means(y: np.ndarray, ok: np.ndarray, seg: np.ndarray, frames: int) -> np.ndarray:
+    """Means of ``y`` over consecutive blocks of ``frames`` frames within runs of ``ok`` frames of
+    one segment (a shorter remainder is dropped)."""
+    out = []
+    start = 0
+    n = y.size
+    while start < n:
+        if not ok[start]:
+            start += 1
+            continue
+        end = start
+        while end < n and ok[end] and seg[end] == seg[start]:
+            end += 1
+        for k in range(start, end - frames + 1, frames):
+            out.append(float(np.mean(y[k:k + frames])))
+        start = end
+    return np.asarray(out)
+
+
+def _values(track: Track, ch: str, source: dict[str, np.ndarray], ok: np.ndarray) -> np.ndarray:
+    """A channel's values on the scored frames: per frame, or 1 s means for ``*_1s``."""
+    base = ch.removesuffix(MEAN_SUFFIX)
+    if ch == base:
+        return source[base][ok]
+    return block_means(source[base], ok, track.seg, _frames_per_s(track))
+
+
+def _frames_per_s(track: Track) -> int:
+    return max(int(round(MEAN_S / track.data.frame_s)), 1)
+
+
 def scores(track: Track) -> list[ChannelScore]:
     """RMS of simulation minus recording per channel, nominal and fitted, on the scored frames;
-    channels the recording does not have are left out."""
+    channels the recording does not have are left out. Besides the per-frame channels, the
+    commanded tilt averaged over MEAN_S blocks (``pitch_cmd_1s``, ``roll_cmd_1s``): the tilt the loop
+    needs, where drag and wind show, without the frame-rate noise of the estimate."""
     out = []
-    for ch, unit in CHANNELS:
-        r = track.recorded[ch]
-        ok = track.score & np.isfinite(r) & np.isfinite(track.nominal[ch]) & np.isfinite(track.fitted[ch])
+    for ch, unit in (*CHANNELS, *MEAN_CHANNELS):
+        ok = _mask(track, ch)
         if np.count_nonzero(ok) < 10:
             continue
-        out.append(ChannelScore(ch, unit, _rms(track.nominal[ch][ok] - r[ok]), _rms(track.fitted[ch][ok] - r[ok]),
-                                int(np.count_nonzero(ok))))
+        r = _values(track, ch, track.recorded, ok)
+        if r.size < 3:
+            continue
+        out.append(ChannelScore(ch, unit, _rms(_values(track, ch, track.nominal, ok) - r),
+                                _rms(_values(track, ch, track.fitted, ok) - r), int(np.count_nonzero(ok))))
     return out
 
 
@@ -378,8 +425,9 @@ def unreproducible(track: Track, cfg: Config, fitted_scores: list[ChannelScore])
     floor, share = {}, {}
     for sc in fitted_scores:
         ch = sc.channel
-        ok = track.score & np.isfinite(track.fitted[ch]) & np.isfinite(track.recorded[ch])
-        floor[ch] = _rms(np.concatenate([r[ch][ok] - track.fitted[ch][ok] for r in runs]))
+        ok = _mask(track, ch, *runs)
+        calm = _values(track, ch, track.fitted, ok)
+        floor[ch] = _rms(np.concatenate([_values(track, ch, r, ok) - calm for r in runs]))
         share[ch] = min(floor[ch] ** 2 / sc.rms_fitted ** 2, 1.0) if sc.rms_fitted > 0 else math.nan
     return Unreproducible((fx, fy), floor, share)
 
@@ -418,11 +466,11 @@ def table(res: Result) -> list[str]:
     """The comparison as text lines (RMS of simulation minus recording, and in noise widths)."""
     u = res.unrepro
     lines = [f"{res.track.recording}: scored on {res.track.scored_on} ({res.scores[0].frames if res.scores else 0} "
-             "frames)", f"  {'channel':10s} {'unit':6s} {'nominal':>9s} {'fitted':>9s} {'noise':>9s}   "
+             "frames)", f"  {'channel':12s} {'unit':6s} {'nominal':>9s} {'fitted':>9s} {'noise':>9s}   "
              "in noise widths: nominal, fitted"]
     for s in res.scores:
         fl = u.floor.get(s.channel, math.nan)
-        lines.append(f"  {s.channel:10s} {s.unit:6s} {s.rms_nominal:9.4g} {s.rms_fitted:9.4g} {fl:9.3g}   "
+        lines.append(f"  {s.channel:12s} {s.unit:6s} {s.rms_nominal:9.4g} {s.rms_fitted:9.4g} {fl:9.3g}   "
                      f"{s.rms_nominal / fl:5.1f}, {s.rms_fitted / fl:5.1f}")
     lines.append("  " + turbulence_line(res))
     lines += [f"  note: {n}" for n in res.track.notes]

@@ -177,6 +177,12 @@ def param_specs(cfg: Config) -> tuple[ParamSpec, ...]:
                   "attitude_dynamics effect, attitude-loop damping (nominal = off)"),
         ParamSpec("SIM_RNG_OFFSET", e.range_offset.offset if e.range_offset else 0.0, -2.0, 2.0, False,
                   "m: range_offset effect, the rangefinder reads true + offset"),
+        ParamSpec("FLOW_FXSCALER", 0.0, -800.0, 800.0, True,
+                  "per mille: ArduPilot's flow X-rate scale correction, applied to the ardupilot profile's flow"),
+        ParamSpec("FLOW_FYSCALER", 0.0, -800.0, 800.0, True,
+                  "per mille: ArduPilot's flow Y-rate scale correction, applied to the ardupilot profile's flow"),
+        ParamSpec("FLOW_ORIENT_YAW", 0.0, -17999.0, 18000.0, True,
+                  "cdeg: ArduPilot's flow sensor yaw, turns the ardupilot profile's flow rates into body axes"),
         ParamSpec("SIM_FLOW_FAULT", 0.0, 0.0, 5.0, True,
                   "0 none, 1 quality 0, 2 frozen (repeats its last frame), 3 one spike, 4 stream stops, "
                   "5 stuck counts (on time)"),
@@ -490,7 +496,9 @@ class Vehicle:
             msgs.append(("DISTANCE_SENSOR", telemetry.distance_sensor(enc, sensors.range, rf.min_m, rf.max_m)))
         if sensors.flow is not None:
             msgs.append((FLOW_MESSAGE[self.profile],
-                         telemetry.flow_message(enc, sensors.flow, self.profile, q, self.T)))
+                         telemetry.flow_message(enc, sensors.flow, self.profile, q, self.T,
+                                                frontend=(v["FLOW_FXSCALER"], v["FLOW_FYSCALER"],
+                                                          v["FLOW_ORIENT_YAW"]))))
         msgs.append(("ATTITUDE", telemetry.attitude(enc, s)))
         msgs.append(("LOCAL_POSITION_NED", telemetry.local_position(enc, s)))
         msgs.append(("ATTITUDE_TARGET", telemetry.attitude_target(enc, s.t_s, *self.sim.u_active)))

@@ -22,11 +22,36 @@ def _i16(x: float) -> int:
     return int(max(-32768, min(32767, round(x))))
 
 
-def flow_message(enc: Any, s: FrameSample, profile: Profile, q_rad_per_count: float, frame_s: float) -> Any:
-    """The flow message of one frame. The sensor's counts are the truth model's (eq. 9-11)."""
+def ardupilot_flow_frontend(rate_x: float, rate_y: float, *, fx_scaler_permille: float, fy_scaler_permille: float,
+                            orient_yaw_cd: float) -> tuple[float, float]:
+    """ArduPilot's flow frontend on one MAVLink flow-rate pair (rad/s, sensor axes): each axis
+    times ``1 + 0.001 FLOW_FxSCALER``, then turned into body axes by ``+FLOW_ORIENT_YAW``
+    (libraries/AP_OpticalFlow/AP_OpticalFlow_Pixart.cpp ``update()``: ``flowScaleFactorX = 1.0f +
+    0.001f * flowScaler.x``; AP_OpticalFlow_Backend.cpp ``_applyYaw``: ``v.rotate(yaw)``)."""
+    rx = rate_x * (1.0 + 0.001 * fx_scaler_permille)
+    ry = rate_y * (1.0 + 0.001 * fy_scaler_permille)
+    if orient_yaw_cd == 0.0:
+        return rx, ry
+    a = math.radians(orient_yaw_cd / 100.0)
+    c, s = math.cos(a), math.sin(a)
+    return c * rx - s * ry, s * rx + c * ry
+
+
+#: the ArduPilot flow frontend's parameters at their defaults: (FLOW_FXSCALER, FLOW_FYSCALER, FLOW_ORIENT_YAW)
+NO_FRONTEND = (0.0, 0.0, 0.0)
+
+
+def flow_message(enc: Any, s: FrameSample, profile: Profile, q_rad_per_count: float, frame_s: float,
+                 frontend: tuple[float, float, float] = NO_FRONTEND) -> Any:
+    """The flow message of one frame. The sensor's counts are the truth model's (eq. 9-11).
+    ``frontend``: ArduPilot's FLOW_FXSCALER, FLOW_FYSCALER (per mille), FLOW_ORIENT_YAW (cdeg), applied
+    to the ``ardupilot`` profile's rates as ArduPilot applies them (``ardupilot_flow_frontend``)."""
     dphi_x = s.flow_x_counts * q_rad_per_count  # paper-convention scene-angle increments
     dphi_y = s.flow_y_counts * q_rad_per_count
     rate_x, rate_y = dphi_y / frame_s, -dphi_x / frame_s  # MAVLink flow_rate: x-flow carries y-motion
+    if profile is Profile.ARDUPILOT and frontend != NO_FRONTEND:
+        rate_x, rate_y = ardupilot_flow_frontend(rate_x, rate_y, fx_scaler_permille=frontend[0],
+                                                 fy_scaler_permille=frontend[1], orient_yaw_cd=frontend[2])
     t_us = int(round(s.t_s * 1e6))
     if profile is Profile.PAPER:
         return enc.optical_flow_encode(t_us, 0, s.flow_x_counts, s.flow_y_counts, 0.0, 0.0, s.flow_quality,
