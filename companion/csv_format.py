@@ -20,11 +20,15 @@ digits by a per-shape template (sign, exponent, number of significant digits), g
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import re
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from typing import Any
 
 import numpy as np
+
+from companion import native
 
 #: rows formatted per block (keeps the byte matrices within the CPU caches)
 BLOCK_ROWS = 16384
@@ -47,21 +51,90 @@ def format_rows(columns: Sequence[np.ndarray], formats: Sequence[str]) -> bytes:
 
     ``formats``: per column ``"%.<P>g"`` (1 <= P <= 15; the column is read as float64),
     ``"%d"`` (an integer column) or ``"%s"`` (any column: ``str`` of each value). Other formats
-    or dtypes are handed to the reference."""
+    or dtypes are handed to the reference. With the compiled kernels (``companion.native``)
+    the rows are written by ``fh_csv_rows``, a C copy of the same rule; otherwise with numpy."""
+    return b"".join(bytes(part) for part in iter_rows(columns, formats))
+
+
+def iter_rows(columns: Sequence[np.ndarray], formats: Sequence[str], block_rows: int = 65_536
+              ) -> Iterator[bytes | memoryview]:
+    """``format_rows(columns, formats)`` in pieces of up to ``block_rows`` rows, for writing
+    to a file as they come (a piece may be a view of a buffer the next one reuses: write it
+    before asking for the next)."""
     cols = [np.asarray(c) for c in columns]
     if not cols:
-        return b""
+        return
     n = len(cols[0])
     if any(len(c) != n for c in cols):
         raise ValueError("columns of different lengths")
     kinds = [_kind(c, f) for c, f in zip(cols, formats, strict=True)]
     if any(k is None for k in kinds):
-        return format_rows_reference(cols, formats)
-    parts = []
-    for a in range(0, n, BLOCK_ROWS):
-        fields = [_field(c[a:a + BLOCK_ROWS], k) for c, k in zip(cols, kinds, strict=True)]
-        parts.append(_join_rows(fields))
-    return b"".join(parts)
+        for a in range(0, n, block_rows):
+            yield format_rows_reference([c[a:a + block_rows] for c in cols], formats)
+        return
+    lib = native.kernels()
+    if lib is not None:
+        yield from _rows_native(lib, cols, kinds, n, block_rows)  # type: ignore[arg-type]
+        return
+    for a in range(0, n, block_rows):
+        part = []
+        for b in range(a, min(a + block_rows, n), BLOCK_ROWS):
+            stop = min(b + BLOCK_ROWS, a + block_rows, n)
+            fields = [_field(c[b:stop], k) for c, k in zip(cols, kinds, strict=True)]  # type: ignore[arg-type]
+            part.append(_join_rows(fields))
+        yield b"".join(part)
+
+
+#: column kinds of ``fh_csv_rows`` (kernels.c)
+_NATIVE_FLOAT, _NATIVE_INT, _NATIVE_TEXT = 0, 1, 2
+
+
+def _rows_native(lib: Any, cols: list[np.ndarray], kinds: list[tuple[str, int]], n: int, block_rows: int
+                 ) -> Iterator[memoryview]:
+    """``iter_rows`` by the compiled kernel: floats as float64, integers as int64, ``%s``
+    columns as codes into their distinct texts (as ``_strings``)."""
+    kind_c, data, digits, blobs, offsets, width = [], [], [], [], [], 0
+    keep: list[np.ndarray] = []  # the arrays the kernel reads, alive until the end
+    for col, (k, p) in zip(cols, kinds, strict=True):
+        blob = off = np.zeros(1, dtype=np.int64)
+        if k == "g":
+            arr = np.ascontiguousarray(col, dtype=np.float64)
+            kind_c.append(_NATIVE_FLOAT)
+            width += p + 8  # sign, digits, point, e-308 (or "0." and three zeros)
+        elif k == "d":
+            arr = np.ascontiguousarray(col, dtype=np.int64)
+            kind_c.append(_NATIVE_INT)
+            width += 20
+        else:
+            codes, texts = _string_codes(col)
+            arr = codes.astype(np.int32)
+            blob = np.frombuffer(b"".join(texts) or b"\0", dtype=np.uint8)
+            off = np.concatenate(([0], np.cumsum([len(t) for t in texts]))).astype(np.int64)
+            kind_c.append(_NATIVE_TEXT)
+            width += max((len(t) for t in texts), default=0)
+        keep += [arr, blob, off]
+        data.append(arr.ctypes.data)
+        digits.append(p)
+        blobs.append(blob.ctypes.data)
+        offsets.append(off.ctypes.data)
+    ncols = len(cols)
+    row_bound = width + ncols
+    pointers = ctypes.c_void_p * ncols
+    kind_a = np.array(kind_c, dtype=np.int32)
+    digit_a = np.array(digits, dtype=np.int32)
+    data_p, blob_p, off_p = pointers(*data), pointers(*blobs), pointers(*offsets)
+    rows = min(block_rows, max(n, 1))
+    out = np.empty(rows * row_bound, dtype=np.uint8)
+    view = memoryview(out)  # type: ignore[arg-type]
+    for a in range(0, n, block_rows):
+        m = min(block_rows, n - a)
+        shifted = pointers(*(d + a * (8 if kc != _NATIVE_TEXT else 4) for d, kc in zip(data, kind_c, strict=True)))
+        written = lib.fh_csv_rows(m, ncols, kind_a.ctypes.data, shifted, digit_a.ctypes.data, blob_p, off_p,
+                                  out.ctypes.data, len(out), row_bound)
+        if written < 0:
+            raise RuntimeError("internal error: CSV row longer than its bound")
+        yield view[:written]
+    del keep, data_p
 
 
 def _kind(col: np.ndarray, fmt: str) -> tuple[str, int] | None:
@@ -86,16 +159,21 @@ def _field(col: np.ndarray, kind: tuple[str, int]) -> np.ndarray:
     return _floats(col, kind[1])
 
 
-def _strings(col: np.ndarray) -> np.ndarray:
-    """``"%s" % v`` of each value, through the distinct values."""
+def _string_codes(col: np.ndarray) -> tuple[np.ndarray, list[bytes]]:
+    """``"%s" % v`` of each value as codes (int64) into the distinct texts (UTF-8)."""
     values = col.tolist()
     uniq: dict[tuple[type, object], int] = {}  # keyed by type too: 1, 1.0 and True print differently
     try:
         codes = np.fromiter((uniq.setdefault((type(v), v), len(uniq)) for v in values), dtype=np.int64,
                             count=len(values))
     except TypeError:  # unhashable values: one by one
-        return _rows_of([str(v).encode() for v in values]) if values else np.zeros((0, 1), dtype=np.uint8)
-    texts = [str(v).encode() for _, v in uniq]
+        return np.arange(len(values), dtype=np.int64), [str(v).encode() for v in values]
+    return codes, [str(v).encode() for _, v in uniq]
+
+
+def _strings(col: np.ndarray) -> np.ndarray:
+    """``"%s" % v`` of each value, through the distinct values."""
+    codes, texts = _string_codes(col)
     return _rows_of(texts)[codes] if texts else np.zeros((0, 1), dtype=np.uint8)
 
 

@@ -71,7 +71,7 @@ from companion.core import (
     repeat_window,
     run_control,
 )
-from companion.csv_format import format_rows
+from companion.csv_format import iter_rows
 from companion.errors import RecordingError, UsageError, check_output, writing
 from companion.inbound import INT16_CLIP, MessageRouter
 from companion.mavlink_ids import (
@@ -618,8 +618,9 @@ def _csv_formats(result: ReplayResult) -> tuple[list[str], list[str]]:
 
 def write_csv(result: ReplayResult, path: str | Path, *, progress: bool = False) -> list[str]:
     """Write the per-frame CSV (``CSV_COLUMNS`` present in the result; 9 significant digits, 12
-    for times; NaN as ``nan``): the text of Python's ``%`` formatting, produced vectorised
-    (``companion.csv_format.format_rows``). ``progress``: a bar on stderr for long results.
+    for times; NaN as ``nan``): the text of Python's ``%`` formatting, produced compiled or
+    vectorised (``companion.csv_format.iter_rows``) and written piece by piece. ``progress``: a
+    bar on stderr for long results.
     Returns the columns written."""
     names, fmts = _csv_formats(result)
     values = [result.columns[c] for c in names]
@@ -633,9 +634,9 @@ def write_csv(result: ReplayResult, path: str | Path, *, progress: bool = False)
     try:
         with open(p, "wb") as fh:
             fh.write((",".join(names) + "\n").encode())
-            chunk = 65_536
-            for a in range(0, len(result), chunk):
-                fh.write(format_rows([v[a:a + chunk] for v in values], fmts))
+            chunk = 16_384
+            for a, part in zip(range(0, len(result), chunk), iter_rows(values, fmts, chunk), strict=True):
+                fh.write(part)  # before the next piece: it may reuse this one's buffer
                 if bar is not None:
                     bar.update(min(chunk, len(result) - a))
     finally:

@@ -1,9 +1,10 @@
 """The vectorised CSV writer is Python's ``%`` formatting, byte for byte (issue 17).
 
-``companion.csv_format.format_rows`` exists only for speed; ``format_rows_reference`` (the ``%``
-operator, value by value) is the rule. Held equal over random values of every magnitude,
-the edge cases of ``%g`` (ties, powers of ten, the switch to exponents, zeros of both signs,
-NaN, infinities, subnormals, the largest doubles), integers, names, and whole replays.
+``companion.csv_format.format_rows`` exists only for speed, compiled (companion/native/kernels.c)
+or in numpy; ``format_rows_reference`` (the ``%`` operator, value by value) is the rule. Each test
+runs on both. Held equal over random values of every magnitude, the edge cases of ``%g`` (ties,
+powers of ten and the values around them, the switch to exponents, zeros of both signs, NaN,
+infinities, subnormals, the largest doubles), integers, names, and whole replays.
 """
 
 from __future__ import annotations
@@ -29,6 +30,19 @@ EDGES = [0.0, -0.0, np.inf, -np.inf, np.nan, -np.nan, 5e-324, 1e-320, 2.22507385
          0.020000000000000018, 0.019999999999999574, 1.0000000005, 1.0000000015, 10.0, 100.0, 1000.0]
 
 
+@pytest.fixture(autouse=True, params=["compiled", "numpy"])
+def writer(request, monkeypatch):
+    """Every test twice: the compiled kernel (``fh_csv_rows``, companion/native) and the numpy
+    formulation (``FLOWHOLD_NATIVE=0``)."""
+    from companion import native
+
+    if request.param == "numpy":
+        monkeypatch.setenv("FLOWHOLD_NATIVE", "0")
+    elif native.kernels() is None:
+        pytest.skip("no C compiler: the numpy path is the only one")
+    return request.param
+
+
 def _check(columns: list[np.ndarray], formats: list[str]) -> None:
     assert format_rows(columns, formats) == format_rows_reference(columns, formats)
 
@@ -49,6 +63,26 @@ def test_every_magnitude(fmt):
     decimals = np.round(rng.standard_normal(n) * 10.0 ** rng.integers(0, 13, n)) / 10.0 ** rng.integers(0, 13, n)
     halves = (rng.integers(0, 10**10, n) + 0.5) / 10.0 ** rng.integers(0, 8, n)  # near rounding ties
     _check([x, decimals, halves, x.astype(np.float32)], [fmt] * 4)
+
+
+@pytest.mark.parametrize("fmt", ["%.9g", "%.12g", "%.1g", "%.15g"])
+def test_around_powers_of_ten(fmt):
+    """A few ulps either side of every power of ten from 1e-35 to 1e45 (where the exponent of
+    the digits is in doubt), and a rounding step either side (where the digits carry over)."""
+    p = int(fmt[2:-1])
+    values = []
+    for k in range(-35, 46):
+        x = float(f"1e{k}")
+        for _ in range(4):
+            values += [x, -x]
+            x = np.nextafter(x, np.inf)
+        x = float(f"1e{k}")
+        for _ in range(4):
+            x = np.nextafter(x, 0.0)
+            values += [x, -x]
+        for r in (0.5, 0.49999999999, 0.50000000001, 0.6, 0.4):
+            values += [float(f"1e{k}") * (1 - r * 10.0 ** -p), float(f"1e{k}") * (1 + r * 10.0 ** -p)]
+    _check([np.array(values, dtype=np.float64)], [fmt])
 
 
 def test_integers_and_names():

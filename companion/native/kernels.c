@@ -17,6 +17,7 @@
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
+#include <limits.h>
 #include <string.h>
 
 #define STX_V1 0xFE
@@ -258,28 +259,62 @@ int32_t fh_tables(const uint8_t *buf, int64_t n, const int64_t *s, const uint8_t
 
 enum { COL_FLOAT = 0, COL_INT = 1, COL_TEXT = 2 };
 
-static const double POW10[23] = {1e0,  1e1,  1e2,  1e3,  1e4,  1e5,  1e6,  1e7,  1e8,  1e9,  1e10, 1e11,
-                                 1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18, 1e19, 1e20, 1e21, 1e22};
+/* 10^k for k = -32..40, the nearest doubles (exact for 0..22) */
+static const double POW10[73] = {
+    1e-32, 1e-31, 1e-30, 1e-29, 1e-28, 1e-27, 1e-26, 1e-25, 1e-24, 1e-23, 1e-22, 1e-21, 1e-20, 1e-19, 1e-18,
+    1e-17, 1e-16, 1e-15, 1e-14, 1e-13, 1e-12, 1e-11, 1e-10, 1e-9,  1e-8,  1e-7,  1e-6,  1e-5,  1e-4,  1e-3,
+    1e-2,  1e-1,  1e0,   1e1,   1e2,   1e3,   1e4,   1e5,   1e6,   1e7,   1e8,   1e9,   1e10,  1e11,  1e12,
+    1e13,  1e14,  1e15,  1e16,  1e17,  1e18,  1e19,  1e20,  1e21,  1e22,  1e23,  1e24,  1e25,  1e26,  1e27,
+    1e28,  1e29,  1e30,  1e31,  1e32,  1e33,  1e34,  1e35,  1e36,  1e37,  1e38,  1e39,  1e40};
+#define POW10_AT(k) POW10[(k) + 32]
 
-/* "%.<P>g" of a finite non-zero x whose digits are unambiguous from one scaling (the rule of
- * csv_format._floats); returns the length written, or 0 when x must go the slow way. */
+static const char DIGITS2[201] = "00010203040506070809101112131415161718192021222324252627282930313233343536373839"
+                                 "40414243444546474849505152535455565758596061626364656667686970717273747576777879"
+                                 "8081828384858687888990919293949596979899";
+
+static inline void put8(char *o, uint32_t v) { /* v < 10^8 as exactly 8 digits */
+    uint32_t a = v / 10000, b = v % 10000;
+    memcpy(o, DIGITS2 + 2 * (a / 100), 2);
+    memcpy(o + 2, DIGITS2 + 2 * (a % 100), 2);
+    memcpy(o + 4, DIGITS2 + 2 * (b / 100), 2);
+    memcpy(o + 6, DIGITS2 + 2 * (b % 100), 2);
+}
+
+/* floor(log10(ax)) for a positive normal double, up to the exactness of the POW10 thresholds
+ * (a value within an ulp of a power of ten may get the power's exponent: both choices print
+ * the same text, see format_g_fast); INT32_MIN when outside the table (the slow path). */
+static inline int64_t decimal_exponent(double ax) {
+    uint64_t bits;
+    memcpy(&bits, &ax, 8);
+    int64_t e2 = (int64_t)((bits >> 52) & 0x7FF) - 1023;
+    int64_t e = (e2 * 78913) >> 18; /* floor(e2 * log10(2)) for |e2| < 1700 */
+    if (e < -32 || e + 1 > 40) return INT32_MIN;
+    if (ax >= POW10_AT(e + 1)) e++;
+    return e;
+}
+
+/* "%.<P>g" of a finite non-zero x whose P significant digits are certain from one scaling by an
+ * exact power of ten (the rule of csv_format._floats: m = |x| * 10^(P-1-e) is within m * 2^-53
+ * of the exact product, so rint(m) is the correctly rounded digits unless m is that close to a
+ * half; an exponent one too small or too large gives digits outside [10^(P-1), 10^P)); returns
+ * the length written, or 0 when x must go the slow way. */
 static inline int format_g_fast(double x, int P, char *o) {
     double ax = fabs(x);
     if (!(ax >= 1e-300 && ax < 1e300)) return 0;
-    int64_t e = (int64_t)floor(log10(ax));
+    int64_t e = decimal_exponent(ax);
+    if (e == INT32_MIN) return 0;
     int64_t k = P - 1 - e;
     if (k > 22 || k < -22) return 0;
-    double m = k >= 0 ? ax * POW10[k] : ax / POW10[-k];
+    double m = k >= 0 ? ax * POW10_AT(k) : ax / POW10_AT(-k);
     double d = rint(m);
     double frac = m - floor(m);
-    double lo = POW10[P - 1], hi = POW10[P];
+    double lo = POW10_AT(P - 1), hi = POW10_AT(P);
     if (!(fabs(frac - 0.5) > hi * 1e-15) || d < lo || d >= hi) return 0;
     uint64_t D = (uint64_t)d;
-    char dig[20];
-    for (int j = P - 1; j >= 0; j--) {
-        dig[j] = (char)('0' + D % 10);
-        D /= 10;
-    }
+    char buf16[16];
+    put8(buf16, (uint32_t)(D / 100000000u));
+    put8(buf16 + 8, (uint32_t)(D % 100000000u));
+    const char *dig = buf16 + 16 - P; /* P <= 15 */
     int nd = P;
     while (nd > 1 && dig[nd - 1] == '0') nd--;
     char *p = o;
@@ -303,14 +338,11 @@ static inline int format_g_fast(double x, int P, char *o) {
         for (int64_t j = 0; j < -e - 1; j++) *p++ = '0';
         memcpy(p, dig, (size_t)nd);
         p += nd;
-    } else { /* ddd.ddd */
+    } else { /* ddd.ddd, or the digits up to the point (zeros included) */
         int whole = (int)e + 1;
-        if (nd <= whole) {
-            memcpy(p, dig, (size_t)whole); /* the digits up to the point, zeros included */
-            p += whole;
-        } else {
-            memcpy(p, dig, (size_t)whole);
-            p += whole;
+        memcpy(p, dig, (size_t)whole);
+        p += whole;
+        if (nd > whole) {
             *p++ = '.';
             memcpy(p, dig + whole, (size_t)(nd - whole));
             p += nd - whole;
@@ -351,15 +383,23 @@ static inline int format_g(double x, int P, char *o) {
 }
 
 static inline int format_d(int64_t v, char *o) {
+    uint64_t a = v < 0 ? (uint64_t)0 - (uint64_t)v : (uint64_t)v;
+    char *p = o;
+    if (v < 0) *p++ = '-';
+    if (a < 100000000u) {
+        char tmp[8];
+        put8(tmp, (uint32_t)a);
+        int skip = 0;
+        while (skip < 7 && tmp[skip] == '0') skip++;
+        memcpy(p, tmp + skip, (size_t)(8 - skip));
+        return (int)(p + 8 - skip - o);
+    }
     char tmp[24];
     int n = 0;
-    uint64_t a = v < 0 ? (uint64_t)0 - (uint64_t)v : (uint64_t)v;
     do {
         tmp[n++] = (char)('0' + a % 10);
         a /= 10;
     } while (a);
-    char *p = o;
-    if (v < 0) *p++ = '-';
     while (n) *p++ = tmp[--n];
     return (int)(p - o);
 }

@@ -1,0 +1,22 @@
+"""Numpy copies that exist only for speed, held equal to the definitions they copy (issue 17)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.core import _trailing_span, _trailing_span_direct
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 7, 25, 60])
+@pytest.mark.parametrize("n", [0, 1, 2, 24, 25, 26, 49, 50, 51, 1000, 4099])
+def test_trailing_span_equals_the_window_view(n, m):
+    """The O(n) sliding extremes equal the window view's max - min, NaN and infinities included
+    (a window holding a NaN is NaN; +inf - +inf is NaN in both)."""
+    rng = np.random.default_rng(1000 * n + m)
+    x = np.round(rng.standard_normal(n), 2)  # ties between equal values
+    for value, share in ((np.nan, 0.01), (np.inf, 0.005), (-np.inf, 0.005), (0.0, 0.05), (-0.0, 0.05)):
+        x[rng.random(n) < share] = value
+    with np.errstate(invalid="ignore"):
+        got, want = _trailing_span(x, m), _trailing_span_direct(x, m)
+    np.testing.assert_array_equal(got, want)
