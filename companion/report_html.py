@@ -147,8 +147,22 @@ def render(report: Report, markdown: str, folder: Path, *, q_rad_per_count: floa
                      "the tables of the same name (an <code>[effects.*]</code> table is added whole). Every key is "
                      "described in docs/reference.md and docs/diagnose.md.</p>")
         parts.append("<pre>" + html.escape("\n\n".join(f"# {c.why}\n{c.toml()}" for c in changes)) + "</pre>")
+    parts.append(autopilot_actions_html(report))
     parts += ["<h2>The evidence</h2>", markdown_to_html("\n".join(md_lines), folder), "</body></html>", ""]
     return "\n".join(parts)
+
+
+def autopilot_actions_html(report: Report) -> str:
+    """The autopilot parameters the report's ``actions`` suggest, as a table ("" when none)."""
+    rows = [a for a in report.actions if a.system in ("ardupilot", "px4")]
+    if not rows:
+        return ""
+    cells = "".join(f"<tr><td>{html.escape(a.system)}</td><td><code>{html.escape(a.parameter)}</code></td>"
+                    f"<td>{a.value:.6g}</td><td>{a.sigma:.2g}</td><td>{html.escape(a.unit)}</td>"
+                    f"<td>{html.escape(a.because)}</td><td>{html.escape(a.note)}</td></tr>" for a in rows)
+    return ("<p>On the autopilot, set (the fitted value, its 1-sigma uncertainty; docs/diagnose.md says how each "
+            "is computed from the autopilot's own source):</p><table><tr><th>autopilot</th><th>parameter</th>"
+            "<th>value</th><th>sigma</th><th>unit</th><th>because</th><th>note</th></tr>" + cells + "</table>")
 
 
 def write_html_report(report: Report, markdown_path: str | Path, *, q_rad_per_count: float) -> Path:

@@ -160,3 +160,16 @@ def test_actions_json_shape():
         assert set(a) == {"system", "parameter", "value", "sigma", "because"}
         assert a["system"] in ("companion", "ardupilot", "px4")
         assert isinstance(a["value"], float) and isinstance(a["sigma"], float) and a["because"] == "flow_scale"
+
+
+def test_the_html_page_lists_the_autopilot_values(tmp_path):
+    from companion.report_html import render
+
+    rep = _report(_scale(1.1, 1.06), _yaw(math.radians(6.0)))
+    rep.actions = actions(rep, profile="ardupilot", q_rad_per_count=Q)
+    page = render(rep, "# x\n\ntext\n", tmp_path, q_rad_per_count=Q)
+    assert "<code>FLOW_ORIENT_YAW</code></td><td>600</td>" in page
+    assert "<code>FLOW_FXSCALER</code></td><td>60</td>" in page  # scale_y 1.06: x rate
+    assert page.index("On the autopilot") < page.index("The evidence")
+    rep.actions = actions(rep, profile="paper", q_rad_per_count=Q)
+    assert "On the autopilot" not in render(rep, "# x\n", tmp_path, q_rad_per_count=Q)
