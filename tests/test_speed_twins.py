@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from companion.core import _trailing_span, _trailing_span_direct
+from companion.info import _median
 
 
 @pytest.mark.parametrize("m", [1, 2, 3, 7, 25, 60])
@@ -20,3 +21,17 @@ def test_trailing_span_equals_the_window_view(n, m):
     with np.errstate(invalid="ignore"):
         got, want = _trailing_span(x, m), _trailing_span_direct(x, m)
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 50, 51, 1000, 1001, 20_000])
+def test_info_median_equals_numpy(n):
+    """``info._median`` (one partition) is ``np.median`` exactly: odd and even lengths, ties,
+    every magnitude, and NaN (then NaN)."""
+    rng = np.random.default_rng(n)
+    for scale in (1e-6, 1.0, 1e6):
+        x = rng.standard_normal(n) * scale
+        assert _median(x) == float(np.median(x))
+        r = np.round(x / scale, 1) * scale  # many equal values
+        assert _median(r) == float(np.median(r))
+    x[n // 2] = np.nan
+    assert np.isnan(_median(x))
