@@ -471,10 +471,16 @@ def table(res: Result) -> list[str]:
     for s in res.scores:
         fl = u.floor.get(s.channel, math.nan)
         lines.append(f"  {s.channel:12s} {s.unit:6s} {s.rms_nominal:9.4g} {s.rms_fitted:9.4g} {fl:9.3g}   "
-                     f"{s.rms_nominal / fl:5.1f}, {s.rms_fitted / fl:5.1f}")
+                     f"{_widths(s.rms_nominal, fl):>5s}, {_widths(s.rms_fitted, fl):>5s}")
     lines.append("  " + turbulence_line(res))
     lines += [f"  note: {n}" for n in res.track.notes]
     return lines
+
+
+def _widths(rms: float, noise: float) -> str:
+    """``rms`` in noise widths, or "-" when the noise width is zero or unknown (a recording with no
+    random force the fitted model's sensors have no noise: nothing to measure it against)."""
+    return f"{rms / noise:.1f}" if noise > 0 and math.isfinite(noise) else "-"
 
 
 def turbulence_line(res: Result) -> str:
@@ -537,7 +543,7 @@ def markdown(results: list[Result], cfg: Config, images: list[str]) -> str:
         for s in res.scores:
             fl = res.unrepro.floor.get(s.channel, math.nan)
             md.append(f"| `{s.channel}` | {s.unit} | {s.rms_nominal:.4g} | {s.rms_fitted:.4g} | {fl:.3g} | "
-                      f"{s.rms_nominal / fl:.1f} | {s.rms_fitted / fl:.1f} |")
+                      f"{_widths(s.rms_nominal, fl)} | {_widths(s.rms_fitted, fl)} |")
         md += ["", turbulence_line(res), "", f"![{res.track.recording}]({img})", ""]
     return "\n".join(md)
 
