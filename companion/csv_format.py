@@ -124,7 +124,7 @@ def _rows_native(lib: Any, cols: list[np.ndarray], kinds: list[tuple[str, int]],
     digit_a = np.array(digits, dtype=np.int32)
     data_p, blob_p, off_p = pointers(*data), pointers(*blobs), pointers(*offsets)
     rows = min(block_rows, max(n, 1))
-    out = np.empty(rows * row_bound, dtype=np.uint8)
+    out = np.empty(rows * row_bound + 64, dtype=np.uint8)  # + room for the kernel's whole-slot copies
     view = memoryview(out)  # type: ignore[arg-type]
     for a in range(0, n, block_rows):
         m = min(block_rows, n - a)
@@ -162,6 +162,14 @@ def _field(col: np.ndarray, kind: tuple[str, int]) -> np.ndarray:
 def _string_codes(col: np.ndarray) -> tuple[np.ndarray, list[bytes]]:
     """``"%s" % v`` of each value as codes (int64) into the distinct texts (UTF-8)."""
     values = col.tolist()
+    try:
+        distinct = dict.fromkeys(values)  # in order of first appearance
+    except TypeError:  # unhashable values: one by one
+        return np.arange(len(values), dtype=np.int64), [str(v).encode() for v in values]
+    if all(type(v) is str for v in distinct):  # names (no str equals a value of another type)
+        lookup = {v: i for i, v in enumerate(distinct)}
+        return (np.fromiter(map(lookup.__getitem__, values), dtype=np.int64, count=len(values)),
+                [v.encode() for v in distinct])
     uniq: dict[tuple[type, object], int] = {}  # keyed by type too: 1, 1.0 and True print differently
     try:
         codes = np.fromiter((uniq.setdefault((type(v), v), len(uniq)) for v in values), dtype=np.int64,

@@ -27,7 +27,7 @@ from pathlib import Path
 
 SOURCE = Path(__file__).resolve().parent / "native" / "kernels.c"
 #: the ABI the Python side expects (``fh_version`` in kernels.c)
-VERSION = 5
+VERSION = 6
 _FLAGS = ("-O2", "-std=c99", "-ffp-contract=off", "-shared", "-fPIC")
 _COMPILE_TIMEOUT_S = 120.0
 

@@ -29,7 +29,7 @@
 #define CRC_LEN 2
 
 /* ABI version: companion/native.py refuses a library whose fh_version differs */
-int32_t fh_version(void) { return 5; }
+int32_t fh_version(void) { return 6; }
 
 /* ------------------------------------------------------------------------------------------- */
 /* CRC-16/MCRF4XX (X.25). crc_tab[k][b]: the CRC contribution of byte b followed by k zero bytes
@@ -404,29 +404,62 @@ static inline int format_d(int64_t v, char *o) {
     return (int)(p - o);
 }
 
+#define CSV_BLOCK 64 /* rows formatted column by column before they are laid out */
+#define CSV_SLOT 32  /* bytes per formatted number (at most 23 are used) */
+
 /* Rows [0, n) of ncols columns as CSV text into out (capacity cap bytes; the caller sizes it
- * with fh_csv_row_bound), returning the bytes written (-1 if cap was too small).
+ * with a row bound: the widest text of each column plus a separator), returning the bytes
+ * written (-1 if cap was too small, or the scratch memory could not be had).
  * kind[c]: COL_FLOAT (data[c]: float64, digits[c] significant digits), COL_INT (int64) or
- * COL_TEXT (int32 codes into the texts [text_off[c][j], text_off[c][j + 1]) of text_blob[c]). */
+ * COL_TEXT (int32 codes into the texts [text_off[c][j], text_off[c][j + 1]) of text_blob[c]).
+ * The numbers of a block of rows are formatted one column at a time (each column read in
+ * order, its values alike in shape), then the rows laid out from the slots. */
 int64_t fh_csv_rows(int64_t n, int32_t ncols, const int32_t *kind, const void *const *data, const int32_t *digits,
                     const uint8_t *const *text_blob, const int64_t *const *text_off, uint8_t *out, int64_t cap,
                     int64_t row_bound) {
+    char *slots = malloc((size_t)ncols * CSV_BLOCK * CSV_SLOT);
+    uint8_t *lens = malloc((size_t)ncols * CSV_BLOCK);
+    if (slots == NULL || lens == NULL) {
+        free(slots);
+        free(lens);
+        return -1;
+    }
     uint8_t *p = out;
-    for (int64_t i = 0; i < n; i++) {
-        if ((p - out) + row_bound > cap) return -1;
+    for (int64_t a = 0; a < n; a += CSV_BLOCK) {
+        int64_t m = n - a < CSV_BLOCK ? n - a : CSV_BLOCK;
+        if ((p - out) + m * row_bound + CSV_SLOT > cap) {
+            free(slots);
+            free(lens);
+            return -1;
+        }
         for (int32_t c = 0; c < ncols; c++) {
+            char *slot = slots + (int64_t)c * CSV_BLOCK * CSV_SLOT;
+            uint8_t *len = lens + (int64_t)c * CSV_BLOCK;
             if (kind[c] == COL_FLOAT) {
-                p += format_g(((const double *)data[c])[i], digits[c], (char *)p);
+                const double *x = (const double *)data[c] + a;
+                int P = digits[c];
+                for (int64_t i = 0; i < m; i++) len[i] = (uint8_t)format_g(x[i], P, slot + i * CSV_SLOT);
             } else if (kind[c] == COL_INT) {
-                p += format_d(((const int64_t *)data[c])[i], (char *)p);
-            } else {
-                int32_t j = ((const int32_t *)data[c])[i];
-                int64_t a = text_off[c][j], b = text_off[c][j + 1];
-                memcpy(p, text_blob[c] + a, (size_t)(b - a));
-                p += b - a;
+                const int64_t *v = (const int64_t *)data[c] + a;
+                for (int64_t i = 0; i < m; i++) len[i] = (uint8_t)format_d(v[i], slot + i * CSV_SLOT);
             }
-            *p++ = c + 1 < ncols ? ',' : '\n';
+        }
+        for (int64_t i = 0; i < m; i++) {
+            for (int32_t c = 0; c < ncols; c++) {
+                if (kind[c] == COL_TEXT) {
+                    int32_t j = ((const int32_t *)data[c])[a + i];
+                    int64_t t0 = text_off[c][j], t1 = text_off[c][j + 1];
+                    memcpy(p, text_blob[c] + t0, (size_t)(t1 - t0));
+                    p += t1 - t0;
+                } else { /* a whole slot is copied (out has room), the text's length kept */
+                    memcpy(p, slots + ((int64_t)c * CSV_BLOCK + i) * CSV_SLOT, CSV_SLOT);
+                    p += lens[(int64_t)c * CSV_BLOCK + i];
+                }
+                *p++ = c + 1 < ncols ? ',' : '\n';
+            }
         }
     }
+    free(slots);
+    free(lens);
     return p - out;
 }
