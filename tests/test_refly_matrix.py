@@ -99,10 +99,13 @@ def test_combined_effects_are_found_flown_again_within_the_noise_and_undone(tmp_
         assert all(r <= 1.0 for r in param_error_ratios(e, vars(v), got).values()), (e, got)
     res = compare(tlog, fitted)
     floor, by = res.unrepro.floor, {s.channel: s for s in res.scores}
-    for ch in ("pitch_cmd", "roll_cmd", "pitch_cmd_1s", "roll_cmd_1s"):
-        assert by[ch].rms_fitted < 1.3 * floor[ch], ch  # within the recording's noise
+    for ch in ("pitch_cmd", "roll_cmd"):
+        assert by[ch].rms_fitted < 1.15 * floor[ch], ch  # within the recording's noise (measured: 1.03, 1.02)
     for ch in ("pitch_cmd_1s", "roll_cmd_1s"):
-        assert by[ch].rms_nominal > 5.0 * floor[ch], ch  # the nominal model many noise widths off
+        # 1 s means hide the frame noise and show what the half-flight fit misses (measured: 1.19, 1.28 widths)
+        assert by[ch].rms_fitted < 1.5 * floor[ch], ch
+    for ch in ("pitch_cmd_1s", "roll_cmd_1s"):
+        assert by[ch].rms_nominal > 10.0 * floor[ch], ch  # the nominal model many noise widths off (20.7, 15.1)
     fixes = [ParamChange(0.5, a.parameter, float(a.value)) for a in diag.report.actions
              if a.system == "ardupilot" and a.parameter in ("FLOW_FXSCALER", "FLOW_FYSCALER", "FLOW_ORIENT_YAW")]
     assert len(fixes) == 3
