@@ -459,15 +459,21 @@ def _non_overlapping(s: np.ndarray, end: np.ndarray) -> np.ndarray:
     return keep
 
 
-def _gaps(s: np.ndarray, end: np.ndarray, n_bytes: int, *, header: int = TIME_HEADER_LEN
-          ) -> tuple[np.ndarray, np.ndarray]:
+def _between(s: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Bytes from the end of each packet to the start of the next: ``s[1:] - end[:-1]`` (n - 1,)."""
+    return s[1:] - end[:-1]
+
+
+def _gaps(s: np.ndarray, end: np.ndarray, n_bytes: int, *, header: int = TIME_HEADER_LEN,
+          between: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Byte ranges ``[a, b)`` not covered by any record (``header`` time bytes + packet) of
     the packets ``[s, end)`` (``s`` sorted, bodies disjoint). ``header=0``: the ranges between
-    packet bodies, longer than a time header (where another packet could be)."""
+    packet bodies, longer than a time header (where another packet could be). ``between``:
+    ``_between(s, end)`` if already at hand."""
     if len(s) == 0:
         return np.array([0]), np.array([n_bytes])
     least = 0 if header else TIME_HEADER_LEN
-    inner = np.flatnonzero(s[1:] - header - end[:-1] > least)
+    inner = np.flatnonzero((_between(s, end) if between is None else between) > header + least)
     a = [[0]] if s[0] - header > least else []
     a += [end[inner]]
     b = [[s[0] - header]] if s[0] - header > least else []
@@ -577,7 +583,9 @@ def _repair_times(t_us: np.ndarray, untrusted: np.ndarray) -> tuple[np.ndarray, 
     n = len(t)
     bad = untrusted.copy()
     block = 1 << 18
-    if n >= 5:
+    # times that never go back have no spike: the middle two of a record's four neighbours are
+    # the ones either side of it, so it lies within their spread (tests/test_speed_twins.py)
+    if n >= 5 and not bool(np.all(t[1:] >= t[:-1])):
         for a in range(0, n - 4, block):
             hi = min(a + block, n - 4)
             bad[a + 2:hi + 2] |= _spikes(t[a:hi + 4], TIME_SPIKE_TOL_S)
@@ -820,9 +828,10 @@ def _pass1_native(lib: Any, buf: np.ndarray, n_bytes: int, progress: _Progress
 
 
 def _find_packets(buf: np.ndarray, n_bytes: int, progress: _Progress
-                  ) -> tuple[_Packets, np.ndarray, _Damage]:
+                  ) -> tuple[_Packets, np.ndarray, np.ndarray, _Damage]:
     """The good packets of the file, sorted by position; whether each one's time header
-    overlaps the packet before (its time is then unreliable); and the damage found."""
+    overlaps the packet before (its time is then unreliable); the bytes between each packet
+    and the next (``_between``); and the damage found."""
     known_tab, extra_tab = _crc_extra_lookup()
 
     def check(c: _Packets) -> _Packets:
@@ -850,11 +859,14 @@ def _find_packets(buf: np.ndarray, n_bytes: int, progress: _Progress
             other_parts.append(s[~chained & fits])
     good = _Packets.concat(good_parts)
     del good_parts
-    good = good.where(_non_overlapping(good.s, good.end))
+    between = _between(good.s, good.end)  # kept while the packets are, for the gaps and the overlaps
+    if not bool(np.all(between >= 0)):
+        good = good.where(_non_overlapping(good.s, good.end))
+        between = _between(good.s, good.end)
 
     # pass 2: every other candidate whose body lies between the bodies of the packets found
     # (its time header may overlap the packet before; the next one's may overlap it)
-    gap_a, gap_b = _gaps(good.s, good.end, n_bytes, header=0)
+    gap_a, gap_b = _gaps(good.s, good.end, n_bytes, header=0, between=between)
     if len(gap_a):
         rest_s = np.concatenate(other_parts) if other_parts else np.zeros(0, dtype=np.int64)
         gi = np.searchsorted(gap_a, rest_s, side="right") - 1
@@ -864,13 +876,14 @@ def _find_packets(buf: np.ndarray, n_bytes: int, progress: _Progress
         rest = rest.where(_non_overlapping(rest.s, rest.end))
         order = np.argsort(np.concatenate((good.s, rest.s)), kind="stable")
         good = _Packets.concat([good, rest]).subset(order)
+        between = _between(good.s, good.end)
     del other_parts, gap_a, gap_b
     progress.advance(5.0)
 
     # what is left between the records: follow the expected record chain through each gap
     damage = _Damage()
     unknown: list[int] = []
-    gap_a, gap_b = _gaps(good.s, good.end, n_bytes)
+    gap_a, gap_b = _gaps(good.s, good.end, n_bytes, between=between)
     for a, b in zip(gap_a.tolist(), gap_b.tolist(), strict=True):
         walk = _walk_gap(buf, a, b, n_bytes)
         # packets of ids the dialect does not define: kept where they fill the gap exactly
@@ -891,11 +904,12 @@ def _find_packets(buf: np.ndarray, n_bytes: int, progress: _Progress
         extra, _ = _parse_headers(buf, np.array(unknown, dtype=np.int64))
         order = np.argsort(np.concatenate((good.s, extra.s)), kind="stable")
         good = _Packets.concat([good, extra]).subset(order)
+        between = _between(good.s, good.end)
     progress.advance(5.0)
 
     overlapped = np.zeros(len(good.s), dtype=bool)
-    overlapped[1:] = good.s[1:] - TIME_HEADER_LEN < good.end[:-1]
-    return good, overlapped, damage
+    overlapped[1:] = between < TIME_HEADER_LEN
+    return good, overlapped, between, damage
 
 
 def _plural(n: int, word: str) -> str:
@@ -1073,7 +1087,7 @@ def read_tlog(path: str | Path, *, progress: bool = False) -> Recording:
     buf, n_bytes = _load(p)
     bar = _Progress(progress and n_bytes > PROGRESS_MIN_BYTES, f"reading {p.name}")
     try:
-        pk, overlapped, damage = _find_packets(buf, n_bytes, bar)
+        pk, overlapped, between, damage = _find_packets(buf, n_bytes, bar)
         if len(pk.s) == 0:
             raise RecordingError(f"no MAVLink packets found in {p}")
         t_s, repaired = _repair_times(pk.t_us, overlapped)
@@ -1086,9 +1100,8 @@ def read_tlog(path: str | Path, *, progress: bool = False) -> Recording:
     finally:
         bar.close()
     # a record starts 8 bytes before its STX, or where the packet before ends if that is later
-    gap = pk.s[1:] - pk.end[:-1]
-    np.minimum(gap, TIME_HEADER_LEN, out=gap)
-    in_records = int(np.sum(pk.total, dtype=np.int64)) + min(TIME_HEADER_LEN, int(pk.s[0])) + int(np.sum(gap))
+    np.minimum(between, TIME_HEADER_LEN, out=between)
+    in_records = int(np.sum(pk.total, dtype=np.int64)) + min(TIME_HEADER_LEN, int(pk.s[0])) + int(np.sum(between))
     skipped_bytes = n_bytes - in_records
     return Recording(
         path=str(p), tables=tables, source_format="tlog",

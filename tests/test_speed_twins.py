@@ -35,3 +35,19 @@ def test_info_median_equals_numpy(n):
         assert _median(r) == float(np.median(r))
     x[n // 2] = np.nan
     assert np.isnan(_median(x))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_times_that_never_go_back_have_no_spike(seed):
+    """``tlog_reader._repair_times`` skips the spike scan when the record times never go back:
+    the scan finds none there (steps of any size, repeats, clock jumps of hours, times near
+    2^64 us where the doubles are coarse)."""
+    from companion.tlog_reader import TIME_SPIKE_TOL_S, _spikes
+
+    rng = np.random.default_rng(seed)
+    n = 20_000
+    steps = rng.choice([0.0, 1e-6, 0.02, 0.9, 1.5, 3600.0, 1e6], size=n, p=[0.1, 0.1, 0.6, 0.05, 0.05, 0.05, 0.05])
+    for t0 in (0.0, 1.75e9, 1.8e13):
+        t = t0 + np.cumsum(steps)
+        assert np.all(np.diff(t) >= 0)
+        assert not _spikes(t, TIME_SPIKE_TOL_S).any()
