@@ -282,7 +282,7 @@ def _bind_effects(table: Any, where: str) -> Effects:
             raise ConfigError(f"{where}.{name}: needs 'enabled = true|false' and its parameters")
         enabled = _coerce(sub["enabled"], bool, f"{where}.{name}.enabled")
         params = {k: v for k, v in sub.items() if k != "enabled"}
-        effect = bind(EFFECT_TYPES[name], params, f"{where}.{name}")
+        effect: object = bind(EFFECT_TYPES[name], params, f"{where}.{name}")
         if enabled:
             bound[name] = effect
     return Effects(**bound)
@@ -299,7 +299,7 @@ def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> Config:
     missing = [s for s in _SECTIONS if s not in data]
     if missing:
         raise ConfigError(f"{source}: missing section(s) {', '.join(missing)}")
-    sections = {name: bind(cls, data[name], f"{source} [{name}]") for name, cls in _SECTIONS.items()}
+    sections: dict[str, Any] = {name: bind(cls, data[name], f"{source} [{name}]") for name, cls in _SECTIONS.items()}
     effects = _bind_effects(data.get("effects", {}), f"{source} [effects]")
     cfg = Config(**sections, effects=effects, source=source)
     validate(cfg)

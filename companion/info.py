@@ -198,7 +198,8 @@ def recording_clock(rec: Recording) -> dict[str, Any]:
             continue
         tab = rec.tables[name]
         senders = _senders(tab)
-        masks = [_from_sender(tab, *sc) for sc in senders] if len(senders) > 1 else [slice(None)]
+        masks: list[np.ndarray | slice] = ([_from_sender(tab, *sc) for sc in senders] if len(senders) > 1
+                                           else [slice(None)])
         rows = max(masks, key=lambda m: len(tab.t_s[m]))  # the most frequent sender (the first of equals)
         t_s, field_values = tab.t_s[rows], tab[field_name][rows]
         if len(t_s) < 20:

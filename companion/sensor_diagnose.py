@@ -942,7 +942,7 @@ def find_legs(disp: Displacement, settings: SensorDiagnosisSettings, scale: floa
     # hysteresis: widen each leg while the speed stays above a lower threshold, so that its
     # slow start and stop belong to it and the reference windows fall in the pauses
     low = max(0.005, 0.1 * float(np.percentile(speed, 95)))
-    wide = []
+    wide: list[tuple[int, int, int]] = []
     for i, (a, b, c) in enumerate(cand):
         lo_lim = wide[-1][1] if wide else 0
         hi_lim = cand[i + 1][0] if i + 1 < len(cand) else len(t)
@@ -960,7 +960,7 @@ def find_legs(disp: Displacement, settings: SensorDiagnosisSettings, scale: floa
         before, kind_b = _reference(t, speed, a, prev, axis, before=True)
         after, kind_a = _reference(t, speed, b - 1, nxt, axis, before=False)
 
-        def diff(x: np.ndarray, ax: int, before=before, after=after) -> float:
+        def diff(x: np.ndarray, ax: int, before: Any = before, after: Any = after) -> float:
             return _mean_in(t, x[:, ax], after) - _mean_in(t, x[:, ax], before)
 
         # across the leg: the pause windows where there are pauses; at a corner the neighbour leg
@@ -1402,7 +1402,7 @@ def _scale_finding(d: SensorDiagnosis, st: SensorDiagnosisSettings, q: float) ->
             f"running sum of flow times range span the {100 * m.leg_m:.0f} cm legs ({len(d.legs)} found)")
     if f.reasons_:
         expl += "; " + "; ".join(f.reasons_)
-    if earned and not away:
+    if fit is not None and earned and not away:
         expl += (f"; the held-out leg error drops ({100 * fit.heldout_rms_before:.1f} -> "
                  f"{100 * fit.heldout_rms_after:.1f} cm) but the scale is within 2 sigma of the paper's Q")
     expl += "."

@@ -474,9 +474,9 @@ def _gaps(s: np.ndarray, end: np.ndarray, n_bytes: int, *, header: int = TIME_HE
         return np.array([0]), np.array([n_bytes])
     least = 0 if header else TIME_HEADER_LEN
     inner = np.flatnonzero((_between(s, end) if between is None else between) > header + least)
-    a = [[0]] if s[0] - header > least else []
+    a: list[Any] = [[0]] if s[0] - header > least else []
     a += [end[inner]]
-    b = [[s[0] - header]] if s[0] - header > least else []
+    b: list[Any] = [[s[0] - header]] if s[0] - header > least else []
     b += [s[inner + 1] - header]
     if n_bytes > end[-1] + least:
         a.append([end[-1]])
@@ -760,7 +760,7 @@ def _load(path: Path) -> tuple[np.ndarray, int]:
     buf = np.empty(n_bytes + _PAD, dtype=np.uint8)
     buf[n_bytes:] = 0
     with open(path, "rb") as f:
-        got = f.readinto(memoryview(buf)[:n_bytes])
+        got = f.readinto(buf.data[:n_bytes])
     if got != n_bytes:
         raise RecordingError(f"{path.name}: could not read the whole file ({got} of {n_bytes} bytes)")
     return buf, n_bytes
@@ -1059,7 +1059,8 @@ def _tables_native(lib: Any, buf: np.ndarray, pk: _Packets, t_s: np.ndarray, pro
     rest = np.flatnonzero(group < 0)
     progress.advance(30.0 * (n - len(rest)) / n)
     if len(rest):
-        sub = _Packets(*(getattr(pk, f)[rest] for f in _Packets._FIELDS if f != "t_us"), np.zeros(0, np.uint64))
+        sub = _Packets(**{f: getattr(pk, f)[rest] for f in _Packets._FIELDS if f != "t_us"},
+                       t_us=np.zeros(0, np.uint64))
         for tab in _tables_numpy(buf, sub, t_s[rest], _Progress(False, "")).values():
             tab.record = rest[tab.record]
             tables.append(tab)

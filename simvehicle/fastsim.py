@@ -68,7 +68,7 @@ from simvehicle.sim import Simulator, Turbulence
 try:  # numba turns the frame loop into machine code; without it the same loop runs in Python
     import numba as _numba
 except ImportError:  # pragma: no cover - numba is a dependency; this keeps imports working without it
-    _numba = None
+    _numba = None  # type: ignore[assignment]
 
 NUMBA = _numba is not None and not os.environ.get("FLOWHOLD_NO_NUMBA")
 
@@ -76,7 +76,7 @@ NUMBA = _numba is not None and not os.environ.get("FLOWHOLD_NO_NUMBA")
 def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
     if not NUMBA:
         return fn
-    return _numba.njit(cache=True, nogil=True)(fn)  # type: ignore[union-attr]
+    return _numba.njit(cache=True, nogil=True)(fn)
 
 
 #: the companion's own eq. 15 and per-axis PI step, compiled (same source as the live loop's)
@@ -149,7 +149,7 @@ def _phi2(c: float, x: float) -> float:
 
 
 @_jit
-def _frames(f0, f1, T, tt, dtc, P, Mn, MT, Md, WvT, WpT, WpD, eT, ePT, Pd0, wq, tau, Wn, en, Sd,
+def _frames(f0, f1, T, tt, dtc, P, Mn, MT, Md, WvT, WpT, WpD, eT, ePT, Pd0, wq, tau, Wn, en, Sd,  # type: ignore[no-untyped-def]
             alt_varies, alt_frame, alt_nodes, has_fnodes, f_nodes, has_fframe, f_frame, sp_sched, use_cmd,
             cmd_sched, mavlink, z, xs, uact, upend, cprev, integ, sp, turb, hist, slots, out):  # noqa: ANN001
     """Frames f0 <= f < f1 of every flight: advance to t_f (f > 0), sample, run the companion.
@@ -365,7 +365,7 @@ def _frames(f0, f1, T, tt, dtc, P, Mn, MT, Md, WvT, WpT, WpD, eT, ePT, Pd0, wq, 
 
 
 @_jit
-def _pi_batch_kernel(integral, err, dt, kp, ki, limit, out_integral, out_effort):  # noqa: ANN001
+def _pi_batch_kernel(integral, err, dt, kp, ki, limit, out_integral, out_effort):  # type: ignore[no-untyped-def]  # noqa: ANN001
     for i in range(integral.shape[0]):
         out_integral[i], out_effort[i] = _pi_axis(integral[i], err[i], dt[i], kp[i], ki[i], limit[i])
 
@@ -409,7 +409,7 @@ def attitude_expm(omega_p_rad_s: Any, zeta: Any, tau_s: Any) -> np.ndarray:
     return np.stack([e * (cosh + s * sinhc), -e * wp * wp * sinhc, e * sinhc, e * (cosh - s * sinhc)], axis=-1)
 
 
-def _phi1_np(c: np.ndarray, x: np.ndarray) -> np.ndarray:
+def _phi1_np(c: np.ndarray, x: float | np.ndarray) -> np.ndarray:
     c, x = np.broadcast_arrays(np.asarray(c, float), np.asarray(x, float))
     z = c * x
     return np.where(z == 0.0, x, -np.expm1(-z) / np.where(c == 0.0, 1.0, c))

@@ -360,10 +360,10 @@ def draw_profile(rng: np.random.Generator, t_end_s: float, speed_limit: float, c
         while t < t_end_s:
             kt.append(t)
             kh.append(kh[-1])
-            new = _u(rng, 0.5, 3.0)
-            t += abs(new - kh[-1]) / _u(rng, 0.15, 0.5) + 0.5
+            new_h = _u(rng, 0.5, 3.0)
+            t += abs(new_h - kh[-1]) / _u(rng, 0.15, 0.5) + 0.5
             kt.append(t)
-            kh.append(new)
+            kh.append(new_h)
             t += _u(rng, 5.0, 60.0)
     kt.append(max(t_end_s, kt[-1]) + 1.0)
     kh.append(kh[-1])
@@ -864,7 +864,7 @@ def simulate(spec: FlightSpec) -> Flight:
     sat = np.abs(truth["pitch_cmd"][k0:]) >= math.radians(TILT_LIMIT_DEG) * 0.999
     sat |= np.abs(truth["roll_cmd"][k0:]) >= math.radians(TILT_LIMIT_DEG) * 0.999
     err = np.hypot(truth["vx"][k0:] - vx_set[k0:], truth["vy"][k0:] - vy_set[k0:])
-    stats = {
+    stats: dict[str, Any] = {
         "frames": int(n_frames - k0),
         "max_tilt_deg": float(np.degrees(np.max(np.abs(np.r_[truth["pitch"][k0:], truth["roll"][k0:]])))),
         "saturated_share": float(np.mean(sat)),
@@ -979,13 +979,13 @@ def truth_of(spec: FlightSpec, flight: Flight) -> dict[str, Any]:
     flow_t = times.get("OPTICAL_FLOW", np.zeros(0))
     u0, u1 = _usable_window(times, 0.0, t_last_unix - t_first_unix)
     effects: dict[str, dict[str, float]] = {}
-    for name, p in spec.effects.items():
-        q = dict(p)
+    for name, drawn in spec.effects.items():
+        q = dict(drawn)
         if name == "wind_force":
-            q["start_s"] = rel(max(p["start_s"], spec.warmup_s)) if not spec.wind_from_start else (
+            q["start_s"] = rel(max(drawn["start_s"], spec.warmup_s)) if not spec.wind_from_start else (
                 float(flow_t[0]) if len(flow_t) else 0.0)
             q["end_s"] = (float(flow_t[-1]) if len(flow_t) else rel(spec.warmup_s + spec.duration_s)) \
-                if spec.wind_to_end else rel(p["end_s"])
+                if spec.wind_to_end else rel(drawn["end_s"])
         effects[name] = q
     wind = None
     if "wind_force" in spec.effects:

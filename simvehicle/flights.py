@@ -337,7 +337,9 @@ def score(m: MatrixCase, report: dict[str, Any]) -> CaseScore:
     truth = _truth_params(m.effects)
     found = {f["effect"]: {k: (v if v is not None else math.nan) for k, v in f["parameters"].items()}
              for f in report["findings"] if f["significant"]}
-    hits, misses, false = [], [], []
+    hits: list[str] = []
+    misses: list[str] = []
+    false: list[str] = []
     errors: dict[str, dict[str, float]] = {}
     for eff, tp in truth.items():
         if eff not in found:

@@ -704,7 +704,7 @@ class Vehicle:
             result = self._set_interval(_whole(p[0]), p[1], streams)
         elif command == mav.MAV_CMD_GET_MESSAGE_INTERVAL:
             mid = _whole(p[0])
-            if mid in STREAM_IDS.values():
+            if mid is not None and mid in STREAM_IDS.values():
                 iv = streams.interval_s(mid)
                 replies.append(Reply(self.enc.message_interval_encode(mid, -1 if iv < 0 else int(iv * 1e6))))
                 result = mav.MAV_RESULT_ACCEPTED
@@ -724,7 +724,7 @@ class Vehicle:
         return [self._ack(msg, command, result), *replies]
 
     def _set_interval(self, msg_id: int | None, interval_us: float, streams: StreamSchedule) -> int:
-        if msg_id not in STREAM_IDS.values() or not math.isfinite(interval_us):
+        if msg_id is None or msg_id not in STREAM_IDS.values() or not math.isfinite(interval_us):
             return mav.MAV_RESULT_DENIED
         if interval_us == 0:
             streams.set(msg_id, None)

@@ -215,7 +215,7 @@ def _tasks(spec: SweepSpec, points: list[tuple[dict[str, Any], Config]], workers
     """Batches of flights of one scenario and frame rate: ``batch_flights`` each, or by default
     about four per worker and at most ``MAX_BATCH`` (a task long enough that scheduling it is a
     small share of its time, short enough to balance the workers)."""
-    flights = []  # (row, config, seed), rows in the order of run_sweep's table
+    flights: list[tuple[int, Config, int]] = []  # (row, config, seed), rows in the order of run_sweep's table
     for _, cfg in points:
         for seed in spec.seeds:
             flights.append((len(flights), cfg, seed))

@@ -87,15 +87,16 @@ class FlightData:
     gyro_resolution_rad_s: float = 0.0
     flow_resolution_rad: float = 0.0
     #: per frame, whether the signal was recorded at the frame (False: bridged over a gap from its
-    #: neighbours, lost telemetry or a slower logging rate); None = recorded everywhere
-    flow_rec: np.ndarray | None = None
+    #: neighbours, lost telemetry or a slower logging rate); None (the default) = recorded
+    #: everywhere, which ``__post_init__`` turns into ones: an array once constructed
+    flow_rec: np.ndarray = None  # type: ignore[assignment]
     #: the flow message's own body rates (roll, pitch rate, rad/s; ArduPilot: flow_rate - flow_comp_m,
     #: PX4: integrated gyro / integration time), sampled with the flow; None when it has none
     flow_body_x_rad_s: np.ndarray | None = None
     flow_body_y_rad_s: np.ndarray | None = None
-    att_rec: np.ndarray | None = None
-    gyro_rec: np.ndarray | None = None
-    cmd_rec: np.ndarray | None = None
+    att_rec: np.ndarray = None  # type: ignore[assignment]
+    gyro_rec: np.ndarray = None  # type: ignore[assignment]
+    cmd_rec: np.ndarray = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         for name in _FLAGS:

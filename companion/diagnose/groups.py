@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -432,7 +433,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0) -> tuple[
     the attitude estimate, or the gyro fused with it (``rotation_angles``). The flow sees the true
     rotation, so the source nearer the truth leaves the smaller nominal residual; which one was
     used goes to ``data.notes``."""
-    kw = dict(mass_kg=cfg.airframe.mass_kg, gravity_m_s2=cfg.airframe.gravity_m_s2)
+    kw: dict[str, Any] = dict(mass_kg=cfg.airframe.mass_kg, gravity_m_s2=cfg.airframe.gravity_m_s2)
     fp = FlowProblem(data, **kw)
     sources = [("the attitude estimate", fp)]
     fused = rotation_angles(data, gyro_lag_s)

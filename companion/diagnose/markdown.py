@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -31,7 +32,7 @@ def _dec(*arrays: np.ndarray) -> list[np.ndarray]:
     return [a[::step] for a in arrays]
 
 
-def _plt():  # noqa: ANN202 - matplotlib's pyplot module
+def _plt() -> Any:  # matplotlib's pyplot module
     import matplotlib
 
     matplotlib.use("Agg")

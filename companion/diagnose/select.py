@@ -217,6 +217,15 @@ def robust_std(x: np.ndarray) -> float:
 class Selector:
     """Fit and choose among a group's candidate effects (see the module docstring)."""
 
+    #: the linearisation (``_linearise``, ``_stats``): per channel the Jacobian (rows, P); per
+    #: (fold, channel) J'J, J'r and r'r; per cross-validation block J'J and J'r
+    J: list[np.ndarray]
+    G: np.ndarray
+    gv: np.ndarray
+    ss: np.ndarray
+    Gb: np.ndarray
+    gvb: np.ndarray
+
     def __init__(self, group: Group, settings: Settings, t0_s: float) -> None:
         self.g = group
         self.s = settings

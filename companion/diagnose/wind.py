@@ -41,10 +41,11 @@ class WindWindow:
     end_sd: float = math.nan
 
 
-def kernel_regressor(t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: int, start_s: float,
-                     end_s: float) -> np.ndarray:
+def kernel_regressor(t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: int, start_s: float | np.ndarray,
+                     end_s: float | np.ndarray) -> np.ndarray:
     """The fraction of each force window [k0, k1] during which a unit force acts, as the force
-    channel averages it (boundary means over +-h frames); shape (n_windows,)."""
+    channel averages it (boundary means over +-h frames); shape (n_windows,), or broadcast against
+    ``start_s``, ``end_s`` given as columns (G, 1) of candidate windows: (G, n_windows)."""
     def bavg(k: np.ndarray) -> np.ndarray:
         ta, tb = t_s[k - h], t_s[k + h]
         return (ramp_integral(tb, start_s, end_s) - ramp_integral(ta, start_s, end_s)) / (tb - ta)

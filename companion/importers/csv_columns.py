@@ -40,7 +40,7 @@ import numpy as np
 from companion.columnar import MessageTable, Recording, open_recording
 from companion.config import bind, read_toml
 from companion.errors import ConfigError, RecordingError
-from companion.importers.common import GRAVITY_M_S2, find_read_grid
+from companion.importers.common import GRAVITY_M_S2, Columns, find_read_grid
 from companion.mavlink_ids import DOWNWARD, MAV_DISTANCE_SENSOR_LASER
 from companion.progress import StageCallback
 
@@ -154,7 +154,8 @@ def column_map_from_dict(data: dict[str, Any], source: str = "<dict>") -> Column
     missing = [s for s in _SECTIONS if s not in data and s not in _OPTIONAL]
     if missing:
         raise ConfigError(f"{source}: missing section(s) {', '.join(missing)}")
-    bound = {name: bind(cls, data[name], f"{source} [{name}]") for name, cls in _SECTIONS.items() if name in data}
+    bound: dict[str, Any] = {name: bind(cls, data[name], f"{source} [{name}]") for name, cls in _SECTIONS.items()
+                             if name in data}
     cmap = ColumnMap(sensor=bound["sensor"], time=bound["time"], gyro=bound["gyro"], accel=bound.get("accel"),
                      flow=bound["flow"], range=bound["range"], source=source)
     _validate(cmap)
@@ -256,11 +257,12 @@ def read_csv(path: str | Path, sensor_config_path: str | Path, *, progress: Stag
     else:
         acc_mg = [np.full(n, np.nan)] * 3
         notes.append("no [accel] section in the column map: RAW_IMU accelerations are NaN")
-    raw_imu = {"time_usec": time_usec, "xgyro": gyro_mrad_s[0], "ygyro": gyro_mrad_s[1], "zgyro": gyro_mrad_s[2],
-               "xacc": acc_mg[0], "yacc": acc_mg[1], "zacc": acc_mg[2], "id": np.zeros(n, np.uint8)}
+    raw_imu: Columns = {"time_usec": time_usec, "xgyro": gyro_mrad_s[0], "ygyro": gyro_mrad_s[1],
+                        "zgyro": gyro_mrad_s[2], "xacc": acc_mg[0], "yacc": acc_mg[1], "zacc": acc_mg[2],
+                        "id": np.zeros(n, np.uint8)}
 
     range_m = cols[cmap.range.column] * RANGE_UNITS_M[cmap.range.unit]
-    dist = {"time_boot_ms": t_s * 1e3, "min_distance": np.full(n, cmap.range.min_m * 100.0),
+    dist: Columns = {"time_boot_ms": t_s * 1e3, "min_distance": np.full(n, cmap.range.min_m * 100.0),
             "max_distance": np.full(n, cmap.range.max_m * 100.0), "current_distance": range_m * 100.0,
             "type": np.full(n, MAV_DISTANCE_SENSOR_LASER, np.uint8), "id": np.zeros(n, np.uint8),
             "orientation": np.full(n, DOWNWARD, np.uint8),
@@ -276,7 +278,7 @@ def read_csv(path: str | Path, sensor_config_path: str | Path, *, progress: Stag
     if np.any((quality < 0) | (quality > 255)):
         notes.append("flow quality outside 0-255: clipped")
     period_s = cmap.flow.read_period_ms * 1e-3
-    of = {"time_usec": time_usec, "sensor_id": np.zeros(n, np.uint8), "flow_x": fx, "flow_y": fy,
+    of: Columns = {"time_usec": time_usec, "sensor_id": np.zeros(n, np.uint8), "flow_x": fx, "flow_y": fy,
           "flow_comp_m_x": np.full(n, np.nan), "flow_comp_m_y": np.full(n, np.nan),
           "quality": np.clip(np.round(quality), 0, 255).astype(np.uint8), "ground_distance": np.full(n, -1.0),
           "flow_rate_x": np.full(n, np.nan), "flow_rate_y": np.full(n, np.nan),

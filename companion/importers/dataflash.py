@@ -36,6 +36,7 @@ import os
 import sys
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -190,7 +191,7 @@ def _index(p: Path, raw: bytes, data: np.ndarray, done: Callable[[str], None]
     """
     from pymavlink import DFReader
 
-    class IndexOnly(DFReader.DFReader_binary):  # type: ignore[misc]
+    class IndexOnly(DFReader.DFReader_binary):
         """DFReader's indexer over bytes in memory (so a decompressed .bin.gz needs no file),
         without its clock set-up: ``init_clock`` parses every message of a log without GPS
         (~50 us each) and this importer reads TimeUS directly.
@@ -204,7 +205,7 @@ def _index(p: Path, raw: bytes, data: np.ndarray, done: Callable[[str], None]
             self.data_map = buffer
             self.data_len = len(buffer)
             self.HEAD1, self.HEAD2 = _HEAD[0], _HEAD[1]
-            self.unpackers = {}
+            self.unpackers: dict[Any, Any] = {}
             self.formats = {_FMT_ID: DFReader.DFFormat(_FMT_ID, "FMT", 89, "BBnNZ", "Type,Length,Name,Format,Columns")}
             self._zero_time_base = True
             self.prev_type = None
@@ -332,7 +333,7 @@ def _optical_flow(c: Columns, ofs: np.ndarray) -> tuple[MessageTable, np.ndarray
     fx = c["flowX"].astype(np.float64)
     fy = c["flowY"].astype(np.float64)
     n = len(t_us)
-    fields = {
+    fields: Columns = {
         "time_usec": t_us / 1000.0,  # milliseconds, as ArduPilot's OPTICAL_FLOW stream
         "sensor_id": np.zeros(n, np.uint8),
         "flow_x": np.zeros(n, np.int16),
@@ -453,7 +454,7 @@ def _distance_sensor(c: Columns, ofs: np.ndarray, params: Mapping[str, float],
     else:
         good_q = np.clip(quality, 0, 100) if quality is not None else np.zeros(n, np.int64)
         signal_quality = np.where(status == RFND_STATUS_GOOD, good_q, 1).astype(np.uint8)
-    fields = {
+    fields: Columns = {
         "time_boot_ms": t_us / 1000.0,
         "min_distance": min_cm,
         "max_distance": max_cm,
@@ -486,7 +487,7 @@ def _attitude(c: Columns, ofs: np.ndarray, rate: tuple[Columns, np.ndarray] | No
         if not hit.all():
             notes.append(f"ATT: {int((~hit).sum())} of {n} rows have no RATE row within half an ATT "
                          "period: their rates are NaN")
-    attitude = {
+    attitude: Columns = {
         "time_boot_ms": t_us / 1000.0,
         "roll": deg(c["Roll"].astype(np.float64)),
         "pitch": deg(c["Pitch"].astype(np.float64)),
@@ -496,7 +497,7 @@ def _attitude(c: Columns, ofs: np.ndarray, rate: tuple[Columns, np.ndarray] | No
         "yawspeed": rates["Y"],
     }
     have_rates = np.isfinite(rates["RDes"]) & np.isfinite(rates["PDes"]) & np.isfinite(rates["YDes"])
-    target = {
+    target: Columns = {
         "time_boot_ms": t_us / 1000.0,
         "type_mask": np.where(have_rates, 0, 7).astype(np.uint8),
         "q": euler_to_quaternions(deg(c["DesRoll"].astype(np.float64)), deg(c["DesPitch"].astype(np.float64)),

@@ -221,7 +221,7 @@ def _flow(topic: str, c: Columns, notes: list[str]) -> MessageTable:
         if topic == "sensor_optical_flow":
             notes.append("flow from sensor_optical_flow (sensor frame: SENS_FLOW_ROT not applied)")
     dist = np.asarray(dist, dtype=np.float64)
-    fields = {
+    fields: Columns = {
         "time_usec": t_sample,
         "sensor_id": sensor_id,
         "integration_time_us": np.asarray(span).astype(np.int64),
