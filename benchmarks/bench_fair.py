@@ -34,6 +34,7 @@ import dataclasses
 import gzip
 import json
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -73,9 +74,9 @@ def load_avg() -> float:
     return os.getloadavg()[0]
 
 
-def _run_json(code: str, *args: str, timeout_s: float = 3600.0) -> dict[str, Any]:
+def _run_json(code: str, *args: str, timeout_s: float = 3600.0, env: dict[str, str] | None = None) -> dict[str, Any]:
     out = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=ROOT,
-                         timeout=timeout_s)
+                         timeout=timeout_s, env={**os.environ, **(env or {})})
     if out.returncode != 0:
         raise RuntimeError((out.stderr.strip().splitlines() or ["?"])[-1][:200])
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -91,6 +92,7 @@ from pymavlink import mavutil
 t1 = time.perf_counter()
 conn = mavutil.mavlink_connection(sys.argv[1], dialect="ardupilotmega")
 t2 = time.perf_counter()
+c2 = time.process_time()
 n = 0
 while True:
     m = conn.recv_match()
@@ -98,7 +100,8 @@ while True:
         break
     n += 1
 t3 = time.perf_counter()
-print(json.dumps({"import_s": t1 - t0, "open_s": t2 - t1, "loop_s": t3 - t2, "messages": n,
+c3 = time.process_time()
+print(json.dumps({"import_s": t1 - t0, "open_s": t2 - t1, "loop_s": t3 - t2, "loop_cpu_s": c3 - c2, "messages": n,
                   "reader": type(conn).__name__}))
 """
 
@@ -107,10 +110,13 @@ import json, sys, time
 t0 = time.perf_counter()
 from pyulog import ULog
 t1 = time.perf_counter()
+c1 = time.process_time()
 u = ULog(sys.argv[1])
 t2 = time.perf_counter()
+c2 = time.process_time()
 n = sum(len(d.data["timestamp"]) for d in u.data_list)
-print(json.dumps({"import_s": t1 - t0, "open_s": 0.0, "loop_s": t2 - t1, "messages": n, "reader": "pyulog.ULog"}))
+print(json.dumps({"import_s": t1 - t0, "open_s": 0.0, "loop_s": t2 - t1, "loop_cpu_s": c2 - c1, "messages": n,
+                  "reader": "pyulog.ULog"}))
 """
 
 
@@ -149,41 +155,55 @@ t0 = time.perf_counter()
 from companion.recording import load_recording
 import companion.tlog_reader
 t1 = time.perf_counter()
-runs = []
+runs, cpus = [], []
 for _ in range(int(sys.argv[2])):
     t = time.perf_counter()
+    c = time.process_time()
     rec = load_recording(sys.argv[1])
     runs.append(time.perf_counter() - t)
+    cpus.append(time.process_time() - c)
     n, skipped = rec.n_messages, rec.skipped_bytes
     del rec
-print(json.dumps({"import_s": t1 - t0, "cold_s": runs[0], "warm_s": min(runs[1:] or runs), "messages": n,
-                  "skipped_bytes": skipped}))
+print(json.dumps({"import_s": t1 - t0, "cold_s": runs[0], "warm_s": min(runs[1:] or runs), "cold_cpu_s": cpus[0],
+                  "warm_cpu_s": min(cpus[1:] or cpus), "messages": n, "skipped_bytes": skipped}))
 """
 
 
-def read(rec: Recording, repeat: int = 4) -> dict[str, Any]:
-    """``load_recording`` in a fresh interpreter: the first read and the best of the others."""
+def read(rec: Recording, repeat: int = 4, env: dict[str, str] | None = None) -> dict[str, Any]:
+    """``load_recording`` in a fresh interpreter: the first read and the best of the others
+    (wall and CPU time). ``env``: extra environment (``FLOWHOLD_NATIVE=0``: the numpy path)."""
     la = load_avg()
-    r = _run_json(_READ, str(rec.path), str(repeat))
+    r = _run_json(_READ, str(rec.path), str(repeat), env=env)
     r["load_before"], r["load_after"] = la, load_avg()
     return r
 
 
-def command(args: list[str], repeat: int = 2, timeout_s: float = 3600.0) -> dict[str, Any]:
-    """Wall time of ``python -m companion ARGS`` as a user runs it (best of ``repeat``), and
-    its exit code (a failure is kept with its last line of stderr)."""
+def _children_cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def command(args: list[str], repeat: int = 2, timeout_s: float = 3600.0, env: dict[str, str] | None = None
+            ) -> dict[str, Any]:
+    """Wall time of ``python -m companion ARGS`` as a user runs it (best of ``repeat``), the CPU
+    time (user + system) of the best run, and the exit code (a failure is kept with its last line
+    of stderr). ``env``: extra environment for the command."""
     la = load_avg()
-    walls = []
+    walls, cpus = [], []
     for _ in range(repeat):
         t = time.perf_counter()
+        c = _children_cpu_s()
         out = subprocess.run([sys.executable, "-m", "companion", *args], capture_output=True, text=True, cwd=ROOT,
-                             timeout=timeout_s)
+                             timeout=timeout_s, env={**os.environ, **(env or {})})
         walls.append(time.perf_counter() - t)
+        cpus.append(_children_cpu_s() - c)
         if out.returncode != 0:
             return {"wall_s": None, "exit_code": out.returncode,
                     "error": (out.stderr.strip().splitlines() or ["?"])[-1][:200], "load_before": la,
                     "load_after": load_avg()}
-    return {"wall_s": min(walls), "walls_s": walls, "exit_code": 0, "load_before": la, "load_after": load_avg()}
+    best = min(range(len(walls)), key=walls.__getitem__)
+    return {"wall_s": walls[best], "cpu_s": cpus[best], "walls_s": walls, "cpus_s": cpus, "exit_code": 0,
+            "load_before": la, "load_after": load_avg()}
 
 
 _PHASES = """
@@ -210,6 +230,8 @@ write_parquet(res, sys.argv[3])
 t6 = time.perf_counter()
 text = format_summary(summarise(rec))
 t7 = time.perf_counter()
+import os
+from companion import native
 from companion.csv_format import format_rows, format_rows_reference
 from companion.replay import _csv_formats
 names, fmts = _csv_formats(res)
@@ -217,13 +239,18 @@ cols = [res.columns[c] for c in names]
 t8 = time.perf_counter()
 fast = format_rows(cols, fmts)
 t9 = time.perf_counter()
-ref = format_rows_reference(cols, fmts)
+os.environ["FLOWHOLD_NATIVE"] = "0"
+vectorised = format_rows(cols, fmts)
+del os.environ["FLOWHOLD_NATIVE"]
 t10 = time.perf_counter()
-assert fast == ref
+ref = format_rows_reference(cols, fmts)
+t11 = time.perf_counter()
+assert fast == ref == vectorised
 print(json.dumps({"numpy_import_s": t1 - t0, "other_imports_s": t2 - t1, "read_s": t3 - t2, "replay_s": t4 - t3,
                   "csv_s": t5 - t4, "parquet_s": t6 - t5, "info_summary_s": t7 - t6, "frames": len(res),
-                  "csv_values": len(res) * len(names), "csv_bytes": len(ref), "format_fast_s": t9 - t8,
-                  "format_python_s": t10 - t9}))
+                  "csv_values": len(res) * len(names), "csv_bytes": len(ref), "format_native_s": t9 - t8,
+                  "format_numpy_s": t10 - t9, "format_python_s": t11 - t10,
+                  "native": native.kernels() is not None}))
 """
 
 
@@ -238,16 +265,79 @@ def phases(path: Path, out_dir: Path) -> dict[str, Any]:
     t = time.perf_counter()
     subprocess.run([sys.executable, "-c", "import numba"], check=True)
     numba_s = time.perf_counter() - t - startup
-    r.update({"python_startup_s": startup, "numba_import_only_s": numba_s, "load_before": la, "load_after": load_avg()})
+    r.update({"python_startup_s": startup, "numba_import_only_s": numba_s, **numba_first_call(),
+              "load_before": la, "load_after": load_avg()})
     return r
 
 
-def measure_recording(rec: Recording, out_dir: Path, repeat: int = 2) -> dict[str, Any]:
-    """Baseline, read, and (``rec.commands``) the whole replay (CSV, Parquet) and info commands."""
+_NUMBA_PROBE = """
+import json, sys, time
+sys.path.insert(0, sys.argv[1])
+t0 = time.perf_counter()
+import numpy as np
+t1 = time.perf_counter()
+import numba
+t2 = time.perf_counter()
+import flowhold_numba_probe as probe
+probe.total(np.arange(10.0))
+t3 = time.perf_counter()
+print(json.dumps({"numpy_s": t1 - t0, "numba_s": t2 - t1, "first_cached_call_s": t3 - t2}))
+"""
+
+
+def numba_first_call() -> dict[str, Any]:
+    """What numba costs a fresh process before it computes anything: ``import numba`` after
+    numpy, and the first call of a function already compiled into numba's on-disk cache
+    (``cache=True``; compiled by a first run here, then timed in a second)."""
+    tmp = Path(tempfile.mkdtemp(prefix="flowhold-numba-"))
+    try:
+        (tmp / "flowhold_numba_probe.py").write_text(
+            "import numba\n\n\n@numba.njit(cache=True)\ndef total(a):\n    s = 0.0\n"
+            "    for x in a:\n        s += x\n    return s\n")
+        _run_json(_NUMBA_PROBE, str(tmp))  # compiles into the cache
+        r = _run_json(_NUMBA_PROBE, str(tmp))
+        return {"numba_import_after_numpy_s": r["numba_s"], "numba_first_cached_call_s": r["first_cached_call_s"]}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def kernel_build() -> dict[str, Any]:
+    """The compiled kernels: whether they load here, the compiler, and the time one build takes
+    (what the first command after installing or changing kernels.c pays once)."""
+    from companion import native
+
+    cc = native._compiler()
+    try:
+        version = subprocess.run([*cc, "--version"], capture_output=True, text=True, timeout=30).stdout
+        version = version.splitlines()[0] if version else None
+    except (OSError, subprocess.SubprocessError):
+        version = None
+    tmp = Path(tempfile.mkdtemp(prefix="flowhold-kernels-"))
+    try:
+        t = time.perf_counter()
+        native._build(tmp / "k.so")
+        build_s = time.perf_counter() - t
+    except (OSError, subprocess.SubprocessError):
+        build_s = None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return {"available": native.kernels() is not None, "compiler": " ".join(cc), "compiler_version": version,
+            "build_s": build_s}
+
+
+NUMPY_PATH = {"FLOWHOLD_NATIVE": "0"}
+
+
+def measure_recording(rec: Recording, out_dir: Path, repeat: int = 2, paths: bool = False) -> dict[str, Any]:
+    """Baseline, read, and (``rec.commands``) the whole replay (CSV, Parquet) and info commands.
+    ``paths``: also the numpy path (``FLOWHOLD_NATIVE=0``: read, replay, info) and the first
+    replay after a fresh install (an empty kernel cache: the build included)."""
     res: dict[str, Any] = {"label": rec.label, "file": rec.path.name, "kind": rec.kind,
                            "bytes": rec.path.stat().st_size}
     res["baseline"] = baseline(rec, repeat=repeat)
     res["read"] = read(rec)
+    if paths:
+        res["read_numpy"] = read(rec, env=NUMPY_PATH)
     if rec.commands:
         csv = out_dir / f"{rec.path.stem}.csv"
         res["replay_csv"] = command(["replay", str(rec.path), "--csv", str(csv)], repeat)
@@ -255,11 +345,32 @@ def measure_recording(rec: Recording, out_dir: Path, repeat: int = 2) -> dict[st
         parquet = out_dir / f"{rec.path.stem}.parquet"
         res["replay_parquet"] = command(["replay", str(rec.path), "--parquet", str(parquet)], repeat)
         res["info"] = command(["info", str(rec.path)], repeat)
+        if paths:
+            csv_np = out_dir / f"{rec.path.stem}.numpy.csv"
+            res["replay_csv_numpy"] = command(["replay", str(rec.path), "--csv", str(csv_np)], repeat, env=NUMPY_PATH)
+            res["replay_csv_numpy"]["same_bytes"] = csv.read_bytes() == csv_np.read_bytes()
+            res["info_numpy"] = command(["info", str(rec.path)], repeat, env=NUMPY_PATH)
+            cache = Path(tempfile.mkdtemp(prefix="flowhold-cache-"))
+            try:
+                res["replay_csv_first_build"] = command(["replay", str(rec.path), "--csv", str(csv)], 1,
+                                                        env={"FLOWHOLD_CACHE_DIR": str(cache)})
+            finally:
+                shutil.rmtree(cache, ignore_errors=True)
     base = res["baseline"]["loop_s"]
     res["ratios"] = {k: (base / v["wall_s"] if v.get("wall_s") else None)
                      for k, v in res.items() if isinstance(v, dict) and "wall_s" in v}
     res["ratios"]["read_warm"] = base / res["read"]["warm_s"]
     res["ratios"]["read_cold"] = base / res["read"]["cold_s"]
+    if "read_numpy" in res:
+        res["ratios"]["read_numpy_warm"] = base / res["read_numpy"]["warm_s"]
+        res["ratios"]["read_numpy_cold"] = base / res["read_numpy"]["cold_s"]
+    # the same ratios in CPU time (user + system): what the load of other jobs on the machine leaves out
+    base_cpu = res["baseline"].get("loop_cpu_s")
+    if base_cpu:
+        res["ratios_cpu"] = {k: (base_cpu / v["cpu_s"] if v.get("cpu_s") else None)
+                             for k, v in res.items() if isinstance(v, dict) and "cpu_s" in v}
+        res["ratios_cpu"]["read_warm"] = base_cpu / res["read"]["warm_cpu_s"]
+        res["ratios_cpu"]["read_cold"] = base_cpu / res["read"]["cold_cpu_s"]
     return res
 
 

@@ -170,22 +170,38 @@ def section_reader(t: Table, quick: bool, workdir: Path) -> None:
     import bench_fair
 
     results = []
+    kernels = bench_fair.kernel_build()
+    t.numbers["kernels"] = kernels
+    t.add("reader", "compiled kernels (companion/native/kernels.c)",
+          f"{'loaded' if kernels['available'] else 'NOT AVAILABLE: numpy path'}",
+          f"{kernels['compiler_version'] or kernels['compiler']}",
+          f"one build {kernels['build_s']:.2f} s" if kernels["build_s"] is not None else "build failed")
     for rec in bench_fair.recordings(workdir, quick):
-        r = bench_fair.measure_recording(rec, workdir / "outputs", repeat=1 if quick else 2)
+        is_long = rec.commands and rec.label.startswith("generated")
+        r = bench_fair.measure_recording(rec, workdir / "outputs", repeat=1 if quick else 2, paths=is_long)
         results.append(r)
         b, rd, q = r["baseline"], r["read"], r["ratios"]
         base = f"{b['reader']} {b['loop_s']:.2f} s ({b['messages']:,} msgs"
         base += f", {b['msgs_per_s'] / 1e3:,.1f} k/s)" if b.get("msgs_per_s") else ")"
         t.add("reader", f"{rec.label}: baseline", base, "1 x", f"+ {b['open_s']:.2f} s to open (not counted)")
-        is_long = "60 min" in rec.label and rec.commands
         t.add("reader", f"{rec.label}: read in process", f"{rd['warm_s']:.3f} s warm, {rd['cold_s']:.3f} s first",
               _x(q["read_warm"]), f">= 150 x: {_verdict(q['read_warm'] >= 150)}" if is_long else "")
+        if "read_numpy" in r:
+            rn = r["read_numpy"]
+            t.add("reader", f"{rec.label}: read in process, numpy path (FLOWHOLD_NATIVE=0)",
+                  f"{rn['warm_s']:.3f} s warm, {rn['cold_s']:.3f} s first", _x(q["read_numpy_warm"]))
         for key, what in (("replay_csv", "replay --csv, whole command"),
-                          ("replay_parquet", "replay --parquet, whole command"), ("info", "info, whole command")):
+                          ("replay_parquet", "replay --parquet, whole command"), ("info", "info, whole command"),
+                          ("replay_csv_numpy", "replay --csv, numpy path (FLOWHOLD_NATIVE=0)"),
+                          ("info_numpy", "info, numpy path (FLOWHOLD_NATIVE=0)"),
+                          ("replay_csv_first_build", "replay --csv, first run (kernels built)")):
             if key in r:
                 c = r[key]
-                target = f">= 50 x: {_verdict((q[key] or 0) >= 50)}" if is_long and key != "replay_parquet" else ""
+                target = f">= 50 x: {_verdict((q[key] or 0) >= 50)}" if is_long and key in ("replay_csv", "info") \
+                    else ""
                 result = f"{c['wall_s']:.2f} s" if c.get("wall_s") else f"failed: {c.get('error')}"
+                if c.get("cpu_s"):
+                    result += f" (CPU {c['cpu_s']:.2f} s)"
                 t.add("reader", f"{rec.label}: {what}", result, _x(q.get(key)), target)
     t.numbers["recordings"] = results
     long = next((r for r in bench_fair.recordings(workdir, quick) if r.commands and "generated" in r.label), None)

@@ -171,7 +171,7 @@ def _gyro_columns(rec: Recording, sysid: int) -> tuple[np.ndarray, np.ndarray, n
         e = np.zeros(0)
         return np.zeros(0, np.int64), e, e, e, ""
     rec_ = np.concatenate([p[0] for p in parts])
-    order = np.argsort(rec_, kind="stable")
+    order = _stable_order(rec_)
     cols = [np.concatenate([np.asarray(p[i], float) for p in parts])[order] for i in (1, 2, 3)]
     return rec_[order], cols[0], cols[1], cols[2], ", ".join(names)
 
@@ -209,11 +209,19 @@ def _ms_key(time_s: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(k), k, -1).astype(np.int64)
 
 
+def _stable_order(keys: np.ndarray) -> np.ndarray:
+    """``np.argsort(keys, kind="stable")``, without the sort when the keys are already in
+    order (a recording's times and sequence numbers nearly always are)."""
+    if len(keys) < 2 or bool(np.all(keys[1:] >= keys[:-1])):  # False with a NaN: then sorted
+        return np.arange(len(keys))
+    return np.argsort(keys, kind="stable")
+
+
 def _match_last(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
     """Index of the last message whose key equals each query key, -1 if none."""
     if len(keys) == 0:
         return np.full(len(query), -1, dtype=np.int64)
-    order = np.argsort(keys, kind="stable")
+    order = _stable_order(keys)
     sk = keys[order]
     pos = np.searchsorted(sk, query, side="right") - 1
     ok = (pos >= 0) & (sk[np.maximum(pos, 0)] == query)
@@ -489,7 +497,7 @@ def _truth(rec: Recording, sysid: int, time_s: np.ndarray) -> dict[str, np.ndarr
     if lp is None:
         return {}
     t = np.asarray(lp["time_boot_ms"], float) * 1e-3
-    order = np.argsort(t, kind="stable")
+    order = _stable_order(t)
     t = t[order]
     vn = np.asarray(lp["vx"], float)[order]
     ve = np.asarray(lp["vy"], float)[order]
@@ -504,7 +512,7 @@ def _truth(rec: Recording, sysid: int, time_s: np.ndarray) -> dict[str, np.ndarr
     yaw = np.zeros(len(time_s))
     if att is not None:
         ta = np.asarray(att["time_boot_ms"], float) * 1e-3
-        o = np.argsort(ta, kind="stable")
+        o = _stable_order(ta)
         yaw = np.interp(time_s, ta[o], np.unwrap(np.asarray(att["yaw"], float)[o]))
     c, s = np.cos(yaw), np.sin(yaw)
     return {"truth_vx_m_s": c * vn_f + s * ve_f, "truth_vy_m_s": -s * vn_f + c * ve_f}

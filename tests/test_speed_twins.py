@@ -51,3 +51,18 @@ def test_times_that_never_go_back_have_no_spike(seed):
         t = t0 + np.cumsum(steps)
         assert np.all(np.diff(t) >= 0)
         assert not _spikes(t, TIME_SPIKE_TOL_S).any()
+
+
+def test_stable_order_equals_a_stable_argsort():
+    """``replay._stable_order`` skips the sort of keys already in order: the same order as
+    ``np.argsort(kind="stable")`` for sorted keys, ties, one swap, NaN, empty and one key."""
+    from companion.replay import _stable_order
+
+    rng = np.random.default_rng(4)
+    sorted_keys = np.sort(rng.integers(0, 50, 1000)).astype(float)
+    swapped = sorted_keys.copy()
+    swapped[[10, 500]] = swapped[[500, 10]]
+    with_nan = sorted_keys.copy()
+    with_nan[300] = np.nan
+    for keys in (sorted_keys, swapped, with_nan, sorted_keys[::-1], np.zeros(0), np.ones(1), sorted_keys.astype(int)):
+        np.testing.assert_array_equal(_stable_order(keys), np.argsort(keys, kind="stable"))
