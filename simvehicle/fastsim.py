@@ -23,15 +23,31 @@ do not (``T`` the frame period, ``tau`` the time into the frame):
 - a ``wind_force`` window that opens or closes inside a frame is integrated exactly (piecewise
   constant force), so windows on the reference's 1 ms grid agree with it.
 
-Everything the reference simulator (``simvehicle.sim.Simulator``, RK4 at 1 ms) and the
-companion (``companion.core.CompanionCore``) do per frame is reproduced: all effects of the
-config, turbulence, gyro and range noise drawn from each flight's own seeded Generator in the
-reference's order, the companion's gating (hold on saturated gyro, invalid range, count spikes),
-the setpoint clip, eq. 15 (``companion.estimator.velocity_from_flow``) and the PI law
-(``companion.controller``'s per-axis step with its anti-windup). With
-``mavlink_quantization=True`` the companion sees what ``simvehicle.scenarios.fly`` feeds it
-through MAVLink (gyro in integer mrad/s, range in integer cm, times in integer µs), so the two
-agree frame for frame.
+What is modelled, exactly. The vehicle: everything the reference simulator
+(``simvehicle.sim.Simulator``, RK4 at 1 ms) does per frame: the effects ``MODELLED_EFFECTS``
+(every effect the config has today), turbulence, gyro and range noise drawn from each flight's
+own seeded Generator in the reference's order. The companion: ``companion.core.CompanionCore``'s
+step for the ``paper`` profile with ``EstimatorOptions.from_config`` as ``COMPANION_MODELLED``
+allows: the setpoint clip (``max_speed_m_s``), the per-frame gates (hold on a saturated or
+non-finite gyro, a range missing or outside the sensor's limits, a scene rate over
+``max_flow_rate_rad_s``), eq. 15 (``companion.estimator.velocity_from_flow``) with the IMU gyro
+sampled at the frame's time (so ``max_gyro_skew_s`` and ``range_timeout_s`` never hold a frame)
+and the PI law (``companion.controller``'s per-axis step with its anti-windup), always engaged,
+every frame new (no repeats), quality 255. With ``mavlink_quantization=True`` the companion sees
+what ``simvehicle.scenarios.fly`` feeds it through MAVLink (gyro in integer mrad/s, range in
+integer cm, times in integer µs), so the two agree frame for frame (tests/test_fastsim.py).
+
+Not modelled, and refused (``check_modelled``: a ConfigError naming the key, which ``simvehicle
+sweep`` prints as one line) rather than ignored: ``velocity_filter = "tilt"``, ``gyro_source =
+"flow"`` (the flow message's own body rate), a negative ``max_gyro_skew_s`` or
+``range_timeout_s``, an effect outside ``MODELLED_EFFECTS``, and any key the engine does not read
+(``FIELDS_READ``; a new estimator option, say) set to anything but ``configs/paper.toml``'s
+value. Not modelled and not a config option: the cross-frame checks (``companion.core.
+Plausibility``: velocity jump, frozen flow, frozen gyro). They hold a frame only on a sensor
+fault (a glitch, a stream that stops changing), which none of the modelled effects produces; the
+frame-for-frame agreement with ``scenarios.fly`` shows they did not fire there. A flight where
+they would fire diverges from the companion from that frame on. Fly such configs with
+``python -m simvehicle scenario`` or ``serve``, which run the companion's own step.
 
 The frame loop runs in a numba-compiled kernel (one pass over flights and axes per frame,
 no temporaries). Without numba the same kernel runs as plain Python, correct but about 200
@@ -512,6 +528,68 @@ def _weights_cached(T: float, n_nodes: int, rows: tuple[tuple[float, ...], ...],
     return _weights(T, n_nodes, a[:, 0], a[:, 1], a[:, 2], a[:, 3], alt_varies)
 
 
+#: the config's effects the engine flies (``_params``); any other active effect is refused
+MODELLED_EFFECTS = frozenset({"linear_drag", "gyro_bias", "flow_scale", "flow_delay", "flow_yaw_misalignment",
+                              "attitude_dynamics", "range_offset", "wind_force"})
+#: ``[companion]`` keys the engine reads or that cannot matter to it: what it does with the key,
+#: and the values for which that is what the companion's step does
+COMPANION_MODELLED: dict[str, tuple[str, Callable[[Any], bool]]] = {
+    "max_speed_m_s": ("it clips the setpoint to it", lambda v: True),
+    "max_flow_rate_rad_s": ("it holds a frame whose scene rate is over it", lambda v: True),
+    "setpoint_timeout_s": ("the live loop's: a simulated flight has no link", lambda v: True),
+    "flow_timeout_s": ("the live loop's: a simulated flight has no link", lambda v: True),
+    "range_timeout_s": ("it samples the range at every frame: never stale for a timeout >= 0", lambda v: v >= 0),
+    "max_gyro_skew_s": ("it samples the gyro at the frame's own time: aligned for a skew >= 0", lambda v: v >= 0),
+    "gyro_source": ("it flies the IMU gyro, as 'imu' (and 'auto' for the paper profile)",
+                    lambda v: v in ("auto", "imu")),
+    "velocity_filter": ("it flies eq. 15 unfiltered, as 'none'", lambda v: v == "none"),
+}
+#: the fields of each config section the engine reads (``_params``; ``sim.substeps_per_frame`` is
+#: the reference's step count: the engine integrates each frame exactly); any other field, in any
+#: section, must keep configs/paper.toml's value
+FIELDS_READ: dict[str, frozenset[str]] = {
+    "airframe": frozenset({"mass_kg", "gravity_m_s2", "omega_p_rad_s", "zeta"}),
+    "controller": frozenset({"kp_rad_per_m_s", "ki_rad_per_m", "tilt_limit_deg"}),
+    "flow_sensor": frozenset({"frame_rate_hz", "q_rad_per_count"}),
+    "imu": frozenset({"rate_hz", "gyro_noise", "gyro_noise_density_deg_s_sqrt_hz", "gyro_range_deg_s"}),
+    "rangefinder": frozenset({"resolution_m", "min_m", "max_m", "noise_std_m"}),
+    "world": frozenset({"altitude_m"}),
+    "sim": frozenset({"substeps_per_frame"}),
+    "companion": frozenset(COMPANION_MODELLED),
+}
+_WHERE_INSTEAD = "fly it with 'python -m simvehicle scenario' or 'serve', which run the companion's own step"
+
+
+@functools.lru_cache(maxsize=1)
+def _shipped_default() -> Config:
+    return load_config()
+
+
+def check_modelled(cfg: Config) -> None:
+    """A ConfigError (one line, naming the key) when ``cfg`` asks for something the engine does
+    not model (see the module docstring), instead of flying without it."""
+    where = f"{cfg.source}: the fast engine does not model"
+    for name in cfg.effects.active():
+        if name not in MODELLED_EFFECTS:
+            raise ConfigError(f"{where} the effect {name} (it models {', '.join(sorted(MODELLED_EFFECTS))}); "
+                              f"{_WHERE_INSTEAD}")
+    for key, (does, ok) in COMPANION_MODELLED.items():
+        value = getattr(cfg.companion, key)
+        if not ok(value):
+            raise ConfigError(f"{where} companion.{key} = {value!r} ({does}); {_WHERE_INSTEAD}")
+    default = _shipped_default()
+    for section in (f.name for f in dataclasses.fields(cfg) if f.name not in ("source", "effects")):
+        table, ref = getattr(cfg, section), getattr(default, section)
+        read = FIELDS_READ.get(section, frozenset())
+        pairs = ([(f"{section}.{f.name}", getattr(table, f.name), getattr(ref, f.name))
+                  for f in dataclasses.fields(table) if f.name not in read]
+                 if dataclasses.is_dataclass(table) else [(section, table, ref)])
+        for key, value, shipped in pairs:
+            if value != shipped:
+                raise ConfigError(f"{where} {key} = {value!r} (it reads no such key and flies configs/paper.toml's "
+                                  f"{shipped!r}); {_WHERE_INSTEAD}")
+
+
 def _params(cfg: Config, T: float, turb_sigma_n: float, turb_tau_s: float) -> tuple[list[float], float, float,
                                                                                        float]:
     """One flight's parameter row, computed with the reference's own scalar expressions."""
@@ -725,6 +803,8 @@ def simulate_batch(cfg: Config | Sequence[Config], n: int | None = None, *, dura
     n_sims = len(configs)
     if n_sims < 1:
         raise ConfigError("a batch needs at least one flight")
+    for c in {id(c): c for c in configs}.values():
+        check_modelled(c)
     T = configs[0].flow_sensor.frame_period_s
     if any(c.flow_sensor.frame_period_s != T for c in configs):
         raise ConfigError("all flights of a batch must share flow_sensor.frame_rate_hz (group them by rate)")

@@ -158,7 +158,8 @@ def _check_key(key: str, base: dict[str, Any], where: Path) -> None:
 
 
 def grid_configs(spec: SweepSpec) -> list[tuple[dict[str, Any], Config]]:
-    """Every grid point (dict key -> value) and its bound Config, in row-major order."""
+    """Every grid point (dict key -> value) and its bound Config, in row-major order; a point the
+    fast engine does not model (``fastsim.check_modelled``) is a ConfigError."""
     out = []
     keys = [k for k, _ in spec.axes]
     for values in itertools.product(*(v for _, v in spec.axes)):
@@ -173,7 +174,9 @@ def grid_configs(spec: SweepSpec) -> list[tuple[dict[str, Any], Config]]:
                     raise ConfigError(f"{spec.path}: grid key {key!r}: {part!r} is not a table")
             table[last] = value
         label = ", ".join(f"{k}={v}" for k, v in point.items())
-        out.append((point, config_from_dict(data, source=f"{spec.path} [{label}]")))
+        cfg = config_from_dict(data, source=f"{spec.path} [{label}]")
+        fastsim.check_modelled(cfg)  # what the fast engine does not model is refused, not ignored
+        out.append((point, cfg))
     return out
 
 

@@ -411,3 +411,57 @@ def test_held_frames_level_the_vehicle(paper_cfg):
     assert fast["hold"].all() and ref["hold"].all()
     assert np.all(fast["roll_cmd_rad"] == 0.0) and np.all(np.isnan(fast["est_vx_m_s"]))
     np.testing.assert_array_equal(fast["est_vx_m_s"], ref["est_vx_m_s"])
+
+
+# ---------------------------------------------------------------------------------------------
+# What the engine does not model is refused, not ignored (issue 13)
+
+
+@pytest.mark.parametrize("key,value,does", [
+    ("velocity_filter", "tilt", "it flies eq. 15 unfiltered"),
+    ("gyro_source", "flow", "it flies the IMU gyro"),
+    ("max_gyro_skew_s", -0.001, "it samples the gyro at the frame's own time"),
+    ("range_timeout_s", -0.1, "it samples the range at every frame"),
+])
+def test_an_unmodelled_companion_option_is_refused(paper_cfg, key, value, does):
+    cfg = C.replace_section(paper_cfg, "companion", **{key: value})
+    with pytest.raises(ConfigError, match=f"does not model companion.{key} = {value!r} \\({does}"):
+        fastsim.simulate_batch(cfg, 1, duration_s=0.1)
+
+
+@pytest.mark.parametrize("key,value", [("gyro_source", "imu"), ("gyro_source", "auto"), ("range_timeout_s", 0.0),
+                                       ("setpoint_timeout_s", 3.0), ("max_speed_m_s", 0.5)])
+def test_the_modelled_companion_values_are_flown(paper_cfg, key, value):
+    cfg = C.replace_section(paper_cfg, "companion", **{key: value})
+    fastsim.check_modelled(cfg)
+    assert fastsim.simulate_batch(cfg, 1, duration_s=0.1).run(0)["t_s"].shape == (6,)
+
+
+@pytest.mark.parametrize("path", sorted(C.CONFIG_DIR.glob("*.toml")), ids=lambda p: p.name)
+def test_every_shipped_config_is_modelled(path):
+    fastsim.check_modelled(C.load_config(path))
+
+
+def test_an_effect_the_engine_does_not_fly_is_refused(paper_cfg, monkeypatch):
+    """An effect the config gains before the engine models it (drop one from MODELLED_EFFECTS to
+    stand for it) is refused by name."""
+    monkeypatch.setattr(fastsim, "MODELLED_EFFECTS", fastsim.MODELLED_EFFECTS - {"gyro_bias"})
+    cfg = C.with_effects(paper_cfg, gyro_bias=C.GyroBias(0.01, 0.0))
+    with pytest.raises(ConfigError, match="does not model the effect gyro_bias"):
+        fastsim.simulate_batch(cfg, 1, duration_s=0.1)
+    fastsim.check_modelled(paper_cfg)  # the effect off: nothing to refuse
+
+
+def test_a_key_the_engine_does_not_read_must_keep_the_shipped_value(paper_cfg, monkeypatch):
+    """A key the engine does not read (a new estimator option, say; here max_speed_m_s taken out of
+    what it reads) flies only at configs/paper.toml's value: anything else is refused by name."""
+    monkeypatch.setattr(fastsim, "COMPANION_MODELLED",
+                        {k: v for k, v in fastsim.COMPANION_MODELLED.items() if k != "max_speed_m_s"})
+    monkeypatch.setitem(fastsim.FIELDS_READ, "companion", frozenset(fastsim.COMPANION_MODELLED))
+    fastsim.check_modelled(paper_cfg)
+    with pytest.raises(ConfigError, match="companion.max_speed_m_s = 3.0 \\(it reads no such key and flies "
+                                          "configs/paper.toml's 2.0\\)"):
+        fastsim.check_modelled(C.replace_section(paper_cfg, "companion", max_speed_m_s=3.0))
+    monkeypatch.setitem(fastsim.FIELDS_READ, "world", frozenset())
+    with pytest.raises(ConfigError, match="world.altitude_m = 2.0"):
+        fastsim.check_modelled(C.replace_section(paper_cfg, "world", altitude_m=2.0))

@@ -239,3 +239,23 @@ def test_sweep_command_line_bad_file_is_one_line(tmp_path):
     assert r.returncode == 3  # ExitCode.CONFIG
     assert r.stderr.strip().count("\n") == 0 and "unknown key(s) extra" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("key,value", [("velocity_filter", '"tilt"'), ("gyro_source", '"flow"')])
+def test_sweep_refuses_what_the_fast_engine_does_not_model(tmp_path, key, value):
+    """Issue 13: a sweep over a config the fast engine cannot fly as the companion does (here the
+    tilt filter or the flow message's own body rate) stops with one line naming the key, before
+    any flight, instead of flying it without."""
+    text = PAPER.read_text()
+    assert f"\n{key} = " in text
+    base = _write(tmp_path, "\n".join(f"{key} = {value}" if line.startswith(f"{key} = ") else line
+                                      for line in text.splitlines()), "base.toml")
+    path = _write(tmp_path, f'base_config = "{base}"\nscenarios = ["step"]\n[grid]\n"world.altitude_m" = [1.0]\n')
+    with pytest.raises(ConfigError, match=f"does not model companion.{key} = {value.replace(chr(34), chr(39))}"):
+        sweep.load_sweep(path)
+    out = tmp_path / "o"
+    r = subprocess.run([sys.executable, "-m", "simvehicle", "sweep", str(path), "--out", str(out), "--in-process"],
+                       capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert r.returncode == 3  # ExitCode.CONFIG
+    assert r.stderr.strip().count("\n") == 0 and f"companion.{key}" in r.stderr and "simvehicle scenario" in r.stderr
+    assert not out.exists()
