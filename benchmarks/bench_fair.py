@@ -74,9 +74,29 @@ def load_avg() -> float:
     return os.getloadavg()[0]
 
 
+#: the environment of every process the benchmark starts (``use_bytecode_cache``)
+CHILD_ENV: dict[str, str] = dict(os.environ)
+
+
+def use_bytecode_cache(folder: Path) -> dict[str, Any]:
+    """Time the child processes with Python's bytecode cache in use, as a user's second run of a
+    command has it: the cache kept in ``folder`` (``PYTHONPYCACHEPREFIX``, nothing written into
+    the checkout), and ``PYTHONDONTWRITEBYTECODE`` left out should the environment set it (then
+    every run would compile the project's sources again). Returns what was changed."""
+    had = CHILD_ENV.pop("PYTHONDONTWRITEBYTECODE", None)
+    CHILD_ENV["PYTHONPYCACHEPREFIX"] = str(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    return {"pycache_prefix": str(folder), "environment_had_dont_write_bytecode": had is not None}
+
+
+def _env(extra: dict[str, str] | None) -> dict[str, str]:
+    env = {**CHILD_ENV, **(extra or {})}
+    return {k: v for k, v in env.items() if v is not None}
+
+
 def _run_json(code: str, *args: str, timeout_s: float = 3600.0, env: dict[str, str] | None = None) -> dict[str, Any]:
     out = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=ROOT,
-                         timeout=timeout_s, env={**os.environ, **(env or {})})
+                         timeout=timeout_s, env=_env(env))
     if out.returncode != 0:
         raise RuntimeError((out.stderr.strip().splitlines() or ["?"])[-1][:200])
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -194,7 +214,7 @@ def command(args: list[str], repeat: int = 2, timeout_s: float = 3600.0, env: di
         t = time.perf_counter()
         c = _children_cpu_s()
         out = subprocess.run([sys.executable, "-m", "companion", *args], capture_output=True, text=True, cwd=ROOT,
-                             timeout=timeout_s, env={**os.environ, **(env or {})})
+                             timeout=timeout_s, env=_env(env))
         walls.append(time.perf_counter() - t)
         cpus.append(_children_cpu_s() - c)
         if out.returncode != 0:
@@ -259,11 +279,11 @@ def phases(path: Path, out_dir: Path) -> dict[str, Any]:
     one fresh interpreter (the interpreter's own start-up is ``python_startup_s``)."""
     la = load_avg()
     t = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "pass"], check=True)
+    subprocess.run([sys.executable, "-c", "pass"], check=True, env=_env(None))
     startup = time.perf_counter() - t
     r = _run_json(_PHASES, str(path), str(out_dir / "phases.csv"), str(out_dir / "phases.parquet"))
     t = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "import numba"], check=True)
+    subprocess.run([sys.executable, "-c", "import numba"], check=True, env=_env(None))
     numba_s = time.perf_counter() - t - startup
     r.update({"python_startup_s": startup, "numba_import_only_s": numba_s, **numba_first_call(),
               "load_before": la, "load_after": load_avg()})
@@ -350,6 +370,10 @@ def measure_recording(rec: Recording, out_dir: Path, repeat: int = 2, paths: boo
             res["replay_csv_numpy"] = command(["replay", str(rec.path), "--csv", str(csv_np)], repeat, env=NUMPY_PATH)
             res["replay_csv_numpy"]["same_bytes"] = csv.read_bytes() == csv_np.read_bytes()
             res["info_numpy"] = command(["info", str(rec.path)], repeat, env=NUMPY_PATH)
+            # every source compiled again in each run, as with PYTHONDONTWRITEBYTECODE=1 (this machine's default)
+            res["replay_csv_no_bytecode_cache"] = command(["replay", str(rec.path), "--csv", str(csv)], repeat,
+                                                          env={"PYTHONDONTWRITEBYTECODE": "1",
+                                                               "PYTHONPYCACHEPREFIX": str(out_dir / "no-such-cache")})
             cache = Path(tempfile.mkdtemp(prefix="flowhold-cache-"))
             try:
                 res["replay_csv_first_build"] = command(["replay", str(rec.path), "--csv", str(csv)], 1,
@@ -542,6 +566,7 @@ def main(argv: list[str] | None = None) -> int:
     workdir = Path(args.workdir)
     out_dir = workdir / "outputs"
     out_dir.mkdir(parents=True, exist_ok=True)
+    use_bytecode_cache(workdir / "pycache")
     results = [measure_recording(r, out_dir) for r in recordings(workdir, args.quick)]
     for r in results:
         print(r["label"], {k: round(v, 1) for k, v in r["ratios"].items() if v})

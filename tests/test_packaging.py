@@ -73,6 +73,7 @@ def test_wheel_holds_every_subpackage_and_the_package_data(wheel):
     assert {f"companion/{c}" for c in SHIPPED_CONFIGS} <= names
     assert "companion/configs/sensors/stampfly.toml" in names
     assert "companion/ardupilot/flowhold_watchdog.lua" in names
+    assert "companion/native/kernels.c" in names  # the compiled kernels' source, built on first use
     for c in SHIPPED_CONFIGS:  # real files in the wheel, equal to the checkout's
         assert zipfile.ZipFile(wheel).read(f"companion/{c}") == (ROOT / c).read_bytes(), c
 
