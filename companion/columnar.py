@@ -121,6 +121,19 @@ class Recording:
         return sum(len(t) for t in self.tables.values())
 
 
+def vehicle_sysid(flow: MessageTable) -> int:
+    """The vehicle of a recording, the one rule replay, diagnose and the sensor-only diagnosis
+    share (issue 13): the system that sent the most of the flow messages ``flow`` (the profile's
+    flow table); on a tie, the one whose first flow message came first (the live loop, which
+    can only know the first, takes the first vehicle it hears). A stray message from another
+    system at the start of a log does not make that system the vehicle."""
+    if len(flow) == 0:
+        raise RecordingError(f"no {flow.name} messages: no vehicle to take the others from")
+    ids, first, counts = np.unique(np.asarray(flow.sysid), return_index=True, return_counts=True)
+    best = np.flatnonzero(counts == counts.max())
+    return int(ids[best[np.argmin(first[best])]])
+
+
 #: the suffix of a gzip-compressed recording (any case): ``flight.tlog.gz``, ``log.BIN.gz``
 GZIP_SUFFIX = ".gz"
 

@@ -50,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.columnar import vehicle_sysid
 from companion.config import Config, load_config
 from companion.core import (
     CAUSE_CODES,
@@ -134,11 +135,6 @@ class ReplayResult:
 
 # ---------------------------------------------------------------------------------------------
 # Selecting the vehicle's messages
-
-
-def _vehicle_sysid(flow: MessageTable) -> int:
-    """The system that sent the flow: the first flow message's sender."""
-    return int(flow.sysid[0])
 
 
 def _from(rec: Recording, name: str, sysid: int) -> MessageTable | None:
@@ -314,7 +310,7 @@ def _prepare(rec: Recording, cfg: Config, profile: Profile) -> tuple[_Frames, in
         raise RecordingError(f"{Path(rec.path).name}: no {name} messages in the recording, nothing to replay"
                              f" with the {profile.value} profile{hint}")
     flow_all = rec.tables[name]
-    sysid = _vehicle_sysid(flow_all)
+    sysid = vehicle_sysid(flow_all)
     flow = flow_all if np.all(flow_all.sysid == sysid) else flow_all.from_sender(sysid=sysid)
     notes = []
     if len(flow) < len(flow_all):

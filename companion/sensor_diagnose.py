@@ -47,6 +47,7 @@ import numpy as np
 from scipy import signal
 
 from companion.advice import actions, recorded_parameters
+from companion.columnar import vehicle_sysid
 from companion.config import Config, load_config
 from companion.errors import RecordingError
 from companion.importers.common import ReadGrid, find_read_grid
@@ -175,7 +176,12 @@ def extract_series(rec: Recording, cfg: Config, profile: str | None = None) -> S
     prof = Profile(profile) if profile else Profile(detect_profile(rec)[0])
     q = cfg.flow_sensor.q_rad_per_count
     flow_msg = "OPTICAL_FLOW_RAD" if prof is Profile.PX4 else "OPTICAL_FLOW"
-    of = rec.table(flow_msg)
+    sysid = vehicle_sysid(rec.table(flow_msg))  # the vehicle's messages only (replay's and diagnose's rule)
+
+    def vehicle(tab: MessageTable) -> MessageTable:
+        return tab if np.all(tab.sysid == sysid) else tab.from_sender(sysid=sysid)
+
+    of = vehicle(rec.table(flow_msg))
     if len(of) < 20:
         raise RecordingError(f"{name}: only {len(of)} {flow_msg} messages: too few for a sensor diagnosis")
     fc = flow_columns(of, prof, q)
@@ -204,7 +210,7 @@ def extract_series(rec: Recording, cfg: Config, profile: str | None = None) -> S
     gyro_name = next((g for g in GYRO_MESSAGES if g in rec), None)
     if gyro_name is None:
         raise RecordingError(f"{name}: the sensor diagnosis needs a gyro (RAW_IMU, SCALED_IMU or HIGHRES_IMU)")
-    gt = rec.tables[gyro_name]
+    gt = vehicle(rec.tables[gyro_name])
     gscale = GYRO_MESSAGES[gyro_name]
     g = np.column_stack([np.asarray(gt[k], dtype=float) * gscale for k in ("xgyro", "ygyro", "zgyro")])
     tg, g = _sorted(report_time(_sensor_time_s(gt)), g)
@@ -217,7 +223,7 @@ def extract_series(rec: Recording, cfg: Config, profile: str | None = None) -> S
 
     if "DISTANCE_SENSOR" not in rec:
         raise RecordingError(f"{name}: the sensor diagnosis needs DISTANCE_SENSOR (range to the ground)")
-    ds = rec.tables["DISTANCE_SENSOR"]
+    ds = vehicle(rec.tables["DISTANCE_SENSOR"])
     dist_cm = np.asarray(ds["current_distance"], dtype=float)
     ok = (np.asarray(ds["orientation"]) == DOWNWARD) & (dist_cm >= np.asarray(ds["min_distance"], dtype=float)) \
         & (dist_cm <= np.asarray(ds["max_distance"], dtype=float))

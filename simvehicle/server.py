@@ -1113,7 +1113,7 @@ class UdpVehicle:
 # Reading a vehicle recording back as per-frame columns
 
 
-def recording_run(path: str | Path, *, name: str = "loop") -> Run:
+def recording_run(path: str | Path, *, name: str = "loop", config: Config | str | Path | None = None) -> Run:
     """The per-frame columns of a recording made by this vehicle (its ``--tlog``), in the
     layout of ``simvehicle.scenarios.Run`` (so ``figures`` and ``plot_run`` apply).
 
@@ -1124,8 +1124,12 @@ def recording_run(path: str | Path, *, name: str = "loop") -> Run:
     frame k is the one that acted from frame k+1: the vehicle's ATTITUDE_TARGET there (the last
     frame takes the companion's SET_ATTITUDE_TARGET for it when there is one). Only the first
     boot is read when the recording holds a SIM_REBOOT.
+
+    ``config``: the parameter set the vehicle flew with (``serve --config``; a Config or a TOML
+    path; default ``configs/paper.toml``): its Q and frame period turn the ``ardupilot`` and
+    ``px4`` profiles' flow rates into counts.
     """
-    cfg = load_config()
+    cfg = config if isinstance(config, Config) else load_config(config)
     rec = load_recording(path)
     lp = rec.table("LOCAL_POSITION_NED").from_sender(compid=1)
     t_ms = lp["time_boot_ms"].astype(np.int64)

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.columnar import vehicle_sysid
 from companion.config import Config
 from companion.errors import RecordingError
 from companion.mavlink_ids import COMPANION_COMPONENT, DOWNWARD
@@ -177,12 +178,6 @@ def _nearest(t_query: np.ndarray, t: np.ndarray, tol_s: float) -> np.ndarray:
     return pick
 
 
-def _vehicle_sysid(rec: Recording, flow_name: str) -> int:
-    tab = rec.tables[flow_name]
-    ids, counts = np.unique(tab.sysid, return_counts=True)
-    return int(ids[np.argmax(counts)])
-
-
 def _from_vehicle(tab: MessageTable, sysid: int) -> MessageTable:
     return tab.select((tab.sysid == sysid) & (tab.compid != COMPANION_COMPONENT))
 
@@ -306,7 +301,7 @@ def extract(rec: Recording, cfg: Config, profile: str | None = None) -> FlightDa
     if missing:
         raise RecordingError(f"{name}: missing {', '.join(missing)} (needed to diagnose a closed-loop flight)")
     flow_name = FLOW_MESSAGE[prof]
-    sysid = _vehicle_sysid(rec, flow_name)
+    sysid = vehicle_sysid(rec.tables[flow_name])
     sessions = _sessions(rec, flow_name, sysid, prof, cfg.flow_sensor.q_rad_per_count)
     parts = []
     for sess in sessions:

@@ -15,8 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from companion.columnar import vehicle_sysid
 from companion.config import Config
 from companion.diagnose.channels import has_commands
 from companion.diagnose.diagnosis import diagnose
@@ -62,11 +61,10 @@ def warm_up() -> None:
 
 
 def _sysid(rec: Recording) -> int:
-    """The system id that sent the flow (the vehicle), the most frequent one; -1 without flow."""
+    """The vehicle's system id (``columnar.vehicle_sysid``, replay's and diagnose's rule); -1 without flow."""
     for name in _FLOW:
         if name in rec:
-            ids, counts = np.unique(rec.tables[name].sysid, return_counts=True)
-            return int(ids[np.argmax(counts)])
+            return vehicle_sysid(rec.tables[name])
     return -1
 
 
