@@ -60,10 +60,13 @@ def build_parser() -> argparse.ArgumentParser:
                              "flow = the flow message's own body rate; auto = flow for ardupilot, imu otherwise "
                              "(docs/ardupilot.md); default: the config's companion.gyro_source (auto in "
                              "configs/paper.toml)")
+    replay.add_argument("--estimator", choices=("auto", "eq15", "tilt", "kf"), default=None,
+                        help="the velocity the PI flies on: eq15 (the paper's), tilt (attitude-predicted two-state "
+                             "observer, companion.core.TiltFilter), kf (Kalman filter, flow sample's age compensated: "
+                             "docs/estimator.md), auto (kf for ardupilot and px4, eq15 for paper); default: the "
+                             "config's companion.velocity_estimator (auto in configs/paper.toml)")
     replay.add_argument("--filter", choices=("none", "tilt"), default=None,
-                        help="velocity filter: none (eq. 15 as is) or tilt (attitude-predicted two-state "
-                             "observer, companion.core.TiltFilter); default: the config's companion.velocity_filter "
-                             "(none in configs/paper.toml)")
+                        help="the older spelling of --estimator: none = eq15, tilt = tilt")
 
     info = sub.add_parser("info", help="summarise a recording")
     _add_recording(info)

@@ -98,6 +98,10 @@ class Sim:
     substeps_per_frame: int
 
 
+#: ``[companion] velocity_estimator`` values
+VELOCITY_ESTIMATORS = ("auto", "eq15", "tilt", "kf")
+
+
 @dataclass(frozen=True)
 class CompanionSettings:
     """Live-companion settings: setpoint limits and the failsafe thresholds."""
@@ -113,8 +117,13 @@ class CompanionSettings:
     #: body rate for eq. 15: "imu" (RAW_IMU nearest the frame), "flow" (the flow message's own
     #: body rate), or "auto" (flow for the ardupilot profile, imu otherwise; docs/ardupilot.md)
     gyro_source: str
-    #: "none" (eq. 15 as the paper has it) or "tilt" (the attitude-predicted observer, core.TiltFilter)
-    velocity_filter: str
+    #: the velocity the PI flies on: "eq15" (the paper's, frame by frame), "tilt" (the attitude-predicted
+    #: observer, core.TiltFilter), "kf" (the Kalman filter with the flow sample's age compensated,
+    #: estimator.VelocityKalman; docs/estimator.md) or "auto" (kf for ardupilot and px4, eq15 for paper)
+    velocity_estimator: str
+    #: how much older the flow sample is than its message's time, beyond half the frame it covers
+    #: (s; the Kalman filter fuses it at its own time; docs/estimator.md says how to measure it)
+    flow_sample_age_s: float
 
 
 # ---------------------------------------------------------------------------------------------
@@ -299,6 +308,10 @@ def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> Config:
     missing = [s for s in _SECTIONS if s not in data]
     if missing:
         raise ConfigError(f"{source}: missing section(s) {', '.join(missing)}")
+    comp = data["companion"]
+    if isinstance(comp, dict) and "velocity_filter" in comp:  # renamed by issue 19
+        raise ConfigError(f"{source} [companion]: velocity_filter was replaced by velocity_estimator "
+                          '("none" -> "eq15", "tilt" -> "tilt"; "kf" and "auto" are new: docs/estimator.md)')
     sections: dict[str, Any] = {name: bind(cls, data[name], f"{source} [{name}]") for name, cls in _SECTIONS.items()}
     effects = _bind_effects(data.get("effects", {}), f"{source} [effects]")
     cfg = Config(**sections, effects=effects, source=source)
@@ -324,7 +337,10 @@ def validate(cfg: Config) -> None:
         (cfg.companion.max_speed_m_s > 0, "companion.max_speed_m_s must be > 0"),
         (cfg.companion.max_flow_rate_rad_s > 0, "companion.max_flow_rate_rad_s must be > 0"),
         (cfg.companion.gyro_source in ("auto", "imu", "flow"), "companion.gyro_source must be auto, imu or flow"),
-        (cfg.companion.velocity_filter in ("none", "tilt"), "companion.velocity_filter must be none or tilt"),
+        (cfg.companion.velocity_estimator in VELOCITY_ESTIMATORS,
+         f"companion.velocity_estimator must be {', '.join(VELOCITY_ESTIMATORS[:-1])} or {VELOCITY_ESTIMATORS[-1]}, "
+         f"got {cfg.companion.velocity_estimator!r}"),
+        (0.0 <= cfg.companion.flow_sample_age_s <= 0.2, "companion.flow_sample_age_s must be in [0, 0.2] s"),
     ]
     for ok, message in checks:
         if not ok:

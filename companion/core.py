@@ -63,17 +63,19 @@ starts afresh at the next take-over.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import enum
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from companion.config import Config
 from companion.controller import PiController, PiState, _axis
-from companion.estimator import VelocitySensor, scene_rate, velocity_from_flow
+from companion.estimator import KalmanSettings, VelocityKalman, VelocitySensor, scene_rate, velocity_from_flow
 from companion.profiles import FlowColumns, Profile
 
 #: gyro samples the live core keeps (the newest received)
@@ -144,24 +146,149 @@ class TiltFilter:
     max_attitude_age_s: float = 0.1
 
 
+class VelocityEstimator(enum.StrEnum):
+    """What the PI flies on (``[companion] velocity_estimator``)."""
+
+    AUTO = "auto"
+    EQ15 = "eq15"
+    TILT = "tilt"
+    KF = "kf"
+
+
 @dataclass(frozen=True)
 class EstimatorOptions:
-    """Choices beyond the paper's estimator; the defaults keep the ``paper`` profile exactly eq. 15."""
+    """Choices beyond the paper's estimator; the defaults keep every profile exactly eq. 15 (a
+    config's ``velocity_estimator``, through ``from_config``, may choose otherwise).
+
+    ``tilt_filter`` given with the default ``estimator`` selects the tilt filter (the form before
+    issue 19); ``estimator`` TILT without one uses ``TiltFilter()``'s gains. ``kalman``: the
+    Kalman filter's settings instead of the config's (``kalman_settings``), for studies."""
 
     gyro_source: GyroSource = GyroSource.AUTO
     tilt_filter: TiltFilter | None = None
+    estimator: VelocityEstimator = VelocityEstimator.EQ15
+    kalman: KalmanSettings | None = None
 
     @classmethod
     def from_config(cls, cfg: Config) -> EstimatorOptions:
-        """The options the ``[companion]`` table selects (``gyro_source``, ``velocity_filter``)."""
-        return cls(GyroSource(cfg.companion.gyro_source),
-                   TiltFilter() if cfg.companion.velocity_filter == "tilt" else None)
+        """The options the ``[companion]`` table selects (``gyro_source``, ``velocity_estimator``)."""
+        est = VelocityEstimator(cfg.companion.velocity_estimator)
+        return cls(GyroSource(cfg.companion.gyro_source), TiltFilter() if est is VelocityEstimator.TILT else None,
+                   est)
 
     def resolved_gyro(self, profile: Profile) -> GyroSource:
         """``auto`` -> ``flow`` for ardupilot (validated on ArduCopter SITL), ``imu`` otherwise."""
         if self.gyro_source is GyroSource.AUTO:
             return GyroSource.FLOW if profile is Profile.ARDUPILOT else GyroSource.IMU
         return self.gyro_source
+
+    def resolved_estimator(self, profile: Profile) -> VelocityEstimator:
+        """``auto`` -> ``kf`` for ardupilot and px4, ``eq15`` for paper (its figures are eq. 15's)."""
+        est = self.estimator
+        if est is VelocityEstimator.AUTO:
+            return VelocityEstimator.EQ15 if profile is Profile.PAPER else VelocityEstimator.KF
+        if est is VelocityEstimator.EQ15 and self.tilt_filter is not None:
+            return VelocityEstimator.TILT
+        return est
+
+    def resolved_tilt(self, profile: Profile) -> TiltFilter | None:
+        """The tilt filter's gains when the tilt filter is selected, else None."""
+        if self.resolved_estimator(profile) is not VelocityEstimator.TILT:
+            return None
+        return self.tilt_filter if self.tilt_filter is not None else TiltFilter()
+
+
+def kalman_settings(cfg: Config, profile: Profile) -> KalmanSettings:
+    """The velocity Kalman filter's noise model for ``profile`` (counts: Q's quantization)."""
+    return KalmanSettings.from_config(cfg, counts=profile is Profile.PAPER)
+
+
+def gyro_window_mean(samples: Sequence[tuple[float, float, float]], t0_s: float, t1_s: float,
+                     max_skew_s: float) -> tuple[float, float] | None:
+    """The gyro's mean over [``t0_s``, ``t1_s``] from ``samples`` (time s, gx, gy rad/s) in
+    arrival order: the samples joined by straight lines (held before the first and after the
+    last), integrated exactly and divided by the window. Samples that are not finite or that
+    do not advance in time are left out; None when no sample lies within ``max_skew_s`` of the
+    window (nothing to say about its rotation)."""
+    ts: list[float] = []
+    xs: list[float] = []
+    ys: list[float] = []
+    lo, hi = t0_s - max_skew_s, t1_s + max_skew_s
+    for t, gx, gy in samples:
+        if lo <= t <= hi and gx - gx == 0.0 and gy - gy == 0.0 and (not ts or t > ts[-1]):
+            ts.append(t)
+            xs.append(gx)
+            ys.append(gy)
+    if not ts:
+        return None
+    if not t1_s > t0_s:
+        i = min(range(len(ts)), key=lambda k: abs(ts[k] - t0_s))
+        return xs[i], ys[i]
+
+    def at(x: float) -> tuple[float, float]:
+        i = bisect.bisect_right(ts, x)
+        if i == 0:
+            return xs[0], ys[0]
+        if i == len(ts):
+            return xs[-1], ys[-1]
+        w = (x - ts[i - 1]) / (ts[i] - ts[i - 1])
+        return xs[i - 1] + w * (xs[i] - xs[i - 1]), ys[i - 1] + w * (ys[i] - ys[i - 1])
+
+    knots = [t0_s, *(t for t in ts if t0_s < t < t1_s), t1_s]
+    sx = sy = 0.0
+    pa = at(knots[0])
+    for a, b in zip(knots[:-1], knots[1:], strict=True):
+        pb = at(b)
+        sx += 0.5 * (pa[0] + pb[0]) * (b - a)
+        sy += 0.5 * (pa[1] + pb[1]) * (b - a)
+        pa = pb
+    span = t1_s - t0_s
+    return sx / span, sy / span
+
+
+def kalman_measurement(vx_m_s: float, vy_m_s: float, gyro_x_rad_s: float, gyro_y_rad_s: float,
+                       mean_gyro: tuple[float, float] | None, range_m: float) -> tuple[float, float]:
+    """eq. 15 as the Kalman filter takes it. When the flow is an increment over a window (counts,
+    integrated radians) and the gyro is the IMU's, the rotation removed is the gyro's mean over
+    the window the flow sample covers (``gyro_window_mean``), not the sample nearest the message's
+    time (``V_x = (-omega_y - Omega_x) A``: ``omega_y`` -> its mean adds ``(g_y - mean) A``; None:
+    eq. 15 as it is). A rate (ardupilot) and the flow message's own body rate are used as they are."""
+    if mean_gyro is None:
+        return vx_m_s, vy_m_s
+    return (vx_m_s + (gyro_y_rad_s - mean_gyro[1]) * range_m,
+            vy_m_s - (gyro_x_rad_s - mean_gyro[0]) * range_m)
+
+
+def kalman_span(integration_s: float, dt_s: float) -> float:
+    """The time the flow of a frame covers: the integration time its message states, else the
+    frame spacing (``estimator.scene_rate``'s rule)."""
+    own = integration_s == integration_s and integration_s != math.inf and integration_s > 0.0
+    return integration_s if own else dt_s
+
+
+def kalman_columns(kf: VelocityKalman, usable: np.ndarray, record: np.ndarray, time_s: np.ndarray,
+                   span_s: np.ndarray, z_x: np.ndarray, z_y: np.ndarray, range_m: np.ndarray,
+                   att_record: np.ndarray, att_time_s: np.ndarray, att_roll_rad: np.ndarray,
+                   att_pitch_rad: np.ndarray, att_roll_rate_rad_s: np.ndarray, att_pitch_rate_rad_s: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``VelocityKalman`` over a recording's frames as the live core runs it: before each frame
+    every ATTITUDE received before it (``record`` order) goes to ``on_attitude``; each usable
+    frame is ``update``d. Returns (vx, vy, var_x, var_y), NaN on the frames not usable."""
+    n = len(time_s)
+    out = np.full((4, n), np.nan)
+    j_end = np.searchsorted(att_record, record, side="left")  # attitude rows received before each frame
+    att = [a.tolist() for a in (att_time_s, att_roll_rad, att_pitch_rad, att_roll_rate_rad_s, att_pitch_rate_rad_s)]
+    rows = list(zip(*att, strict=True))
+    cols = [c.tolist() for c in (time_s, span_s, z_x, z_y, range_m)]
+    j = 0
+    on_att, update = kf.on_attitude, kf.update
+    for i, (ok, end) in enumerate(zip(usable.tolist(), j_end.tolist(), strict=True)):
+        while j < end:
+            on_att(*rows[j])
+            j += 1
+        if ok:
+            out[:, i] = update(cols[0][i], cols[1][i], cols[2][i], cols[3][i], cols[4][i])
+    return out[0], out[1], out[2], out[3]
 
 
 @dataclass(frozen=True)
@@ -224,6 +351,9 @@ class StepOutput:
     #: True when this flow message repeated the last sample, or came out of order: nothing was
     #: stepped, this is the previous step's output again
     repeat: bool = False
+    #: the variance of vx_m_s, vy_m_s (m^2/s^2) when the Kalman filter made them, else NaN
+    vx_var_m2_s2: float = math.nan
+    vy_var_m2_s2: float = math.nan
 
     @property
     def holding(self) -> bool:
@@ -374,6 +504,23 @@ def repeat_mask(time_s: np.ndarray, payload: np.ndarray, window_s: float | np.nd
 def latest_before(event_record: np.ndarray, query_record: np.ndarray) -> np.ndarray:
     """Index of the latest event received before each query (both sorted by ``record``); -1 if none."""
     return np.searchsorted(event_record, query_record, side="left") - 1
+
+
+def gyro_history_columns(gyro_record: np.ndarray, gyro_time_s: np.ndarray, flow_record: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """The gyro samples ``CompanionCore`` holds when each flow frame arrives, as index bounds
+    (first, last) into the gyro columns (inclusive; last -1: none): the newest ``GYRO_HISTORY``
+    received before the frame since the last reboot (``align_gyro_columns``'s rule)."""
+    if len(gyro_record) == 0:
+        e = np.full(len(flow_record), -1, dtype=np.int64)
+        return e, e
+    with np.errstate(invalid="ignore"):
+        reboot = np.zeros(len(gyro_time_s), dtype=bool)
+        reboot[1:] = gyro_time_s[1:] < gyro_time_s[:-1] - GYRO_REBOOT_S
+    start = np.maximum.accumulate(np.where(reboot, np.arange(len(gyro_time_s)), 0))
+    last = latest_before(gyro_record, flow_record)
+    first = np.where(last >= 0, np.maximum(start[np.maximum(last, 0)], last - (GYRO_HISTORY - 1)), 0)
+    return first, last
 
 
 def align_gyro_columns(gyro_record: np.ndarray, gyro_time_s: np.ndarray, flow_record: np.ndarray,
@@ -819,8 +966,11 @@ class CompanionCore:
         self.cfg = cfg
         self.profile = profile
         self.options = options if options is not None else EstimatorOptions.from_config(cfg)
-        self.gyro_source = self.options.resolved_gyro(profile)
         self.params = StepParams.from_config(cfg)
+        #: the Kalman filter; fed every attitude sample whatever the estimator (the profile, and so the
+        #: estimator, may be told only after the first samples)
+        self.kalman = VelocityKalman(self.options.kalman or kalman_settings(cfg, profile))
+        self._bind(profile)
         self.sensor = VelocitySensor(nominal_frame_s=cfg.flow_sensor.frame_period_s)  # prev frame time
         self.pi = PiController(cfg.controller.kp_rad_per_m_s, cfg.controller.ki_rad_per_m,
                                cfg.controller.tilt_limit_rad)
@@ -853,6 +1003,7 @@ class CompanionCore:
         self._attitude = (time_s, roll_rad, pitch_rad)
         rates = (float(roll_rate_rad_s), float(pitch_rate_rad_s))
         self._attitude_rate = rates if all(math.isfinite(r) for r in rates) else None
+        self.kalman.on_attitude(float(time_s), float(roll_rad), float(pitch_rad), rates[0], rates[1])
 
     def set_setpoint(self, vx_m_s: float, vy_m_s: float) -> None:
         """Body-frame velocity setpoint; non-finite values are ignored, each axis is clipped to
@@ -865,8 +1016,16 @@ class CompanionCore:
     def set_profile(self, profile: Profile) -> None:
         """Bind the core to ``profile`` once a live link has told which it is (before any flow
         frame was stepped: gyro, range and attitude samples do not depend on it)."""
+        self._bind(profile)
+
+    def _bind(self, profile: Profile) -> None:
+        """The profile's choices: gyro source, estimator, the Kalman filter's noise model."""
         self.profile = profile
         self.gyro_source = self.options.resolved_gyro(profile)
+        self.estimator = self.options.resolved_estimator(profile)
+        self.tilt = self.options.resolved_tilt(profile)
+        self.kalman.s = self.options.kalman or kalman_settings(self.cfg, profile)
+        self.kalman.reset()
 
     def set_engaged(self, engaged: bool) -> None:
         """Whether the vehicle is in the companion's mode (GUIDED_NOGPS). While not engaged the
@@ -953,8 +1112,18 @@ class CompanionCore:
             dt = p.nominal_frame_s
             if math.isfinite(f.time_s):
                 self.sensor.prev_time_s = f.time_s
+        vx_raw, vy_raw = raw if raw is not None else (vx, vy)
+        var_x = var_y = math.nan
+        if self.estimator is VelocityEstimator.KF and cause is HoldCause.NONE:
+            span = kalman_span(f.integration_s, dt)
+            zx, zy = vx, vy
+            if self.gyro_source is GyroSource.IMU and f.increment:  # the rotation over the sample's own window
+                t1 = f.time_s - self.kalman.s.flow_sample_age_s
+                zx, zy = kalman_measurement(vx, vy, gx, gy, gyro_window_mean(self._gyro, t1 - span, t1,
+                                                                               p.max_gyro_skew_s), rng)
+            vx, vy, var_x, var_y = self.kalman.update(f.time_s, span, zx, zy, rng)
         roll = pitch = math.nan
-        tilt = self.options.tilt_filter
+        tilt = self.tilt
         if tilt is not None and self._attitude is not None:
             t_a, r_a, p_a = self._attitude
             if f.time_s - t_a <= tilt.max_attitude_age_s:
@@ -967,7 +1136,7 @@ class CompanionCore:
         self.pi.state = PiState(*pi_state)
         if cause is HoldCause.NONE and not self.engaged:
             cause = HoldCause.DISENGAGED
-        vx_raw, vy_raw = raw if raw is not None else (vx, vy)
-        out = StepOutput(f.time_s, dt, vx_f, vy_f, sx, sy, roll_cmd, pitch_cmd, cause, gx, gy, rng, vx_raw, vy_raw)
+        out = StepOutput(f.time_s, dt, vx_f, vy_f, sx, sy, roll_cmd, pitch_cmd, cause, gx, gy, rng, vx_raw, vy_raw,
+                         vx_var_m2_s2=var_x, vy_var_m2_s2=var_y)
         self.last = out
         return out

@@ -1,7 +1,7 @@
 """Replay: the companion's estimator and controller over a recording, one row per flow frame.
 
     python -m companion replay RECORDING --csv OUT.csv [--config FILE] [--profile P] [--plot OUT.png]
-                                         [--gyro {auto,imu,flow}] [--filter {none,tilt}]
+                                         [--gyro {auto,imu,flow}] [--estimator {auto,eq15,tilt,kf}]
 
 The live code path over the recorded messages, fast: the recording is read into columns
 (``companion.recording.load_recording``), the live core's alignment rules are applied to whole
@@ -63,9 +63,17 @@ from companion.core import (
     StepOutput,
     StepParams,
     TiltFilter,
+    VelocityEstimator,
+    VelocityKalman,
     align_gyro_columns,
     estimate_frames,
     gate_frames,
+    gyro_history_columns,
+    gyro_window_mean,
+    kalman_columns,
+    kalman_measurement,
+    kalman_settings,
+    kalman_span,
     latest_before,
     plausibility_columns,
     repeat_mask,
@@ -375,6 +383,7 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
     integration_s = _take(fc.integration_s, keep, n_msg)
 
     # the gyro sample aligned with each frame
+    gyro_hist = None  # (times, gx, gy, first, last): the live core's gyro history at each frame
     if gyro_source is GyroSource.FLOW:
         gx, gy = _take(fc.body_x_rad_s, keep, n_msg), _take(fc.body_y_rad_s, keep, n_msg)
         gyro_found = ~(np.isnan(gx) | np.isnan(gy))
@@ -388,6 +397,8 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
         else:
             notes.append(f"gyro from {g_names}")
         j = align_gyro_columns(g_rec, g_t, record, time_s, p.max_gyro_skew_s)
+        if fc.increment:  # the flow covers a window: its rotation is the gyro's mean over it (core.kalman_measurement)
+            gyro_hist = (g_t, g_x, g_y, *gyro_history_columns(g_rec, g_t, record))
         gyro_found = j >= 0
         gx = np.where(gyro_found, g_x[np.maximum(j, 0)] if len(g_x) else np.nan, np.nan)
         gy = np.where(gyro_found, g_y[np.maximum(j, 0)] if len(g_y) else np.nan, np.nan)
@@ -410,7 +421,8 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
 
     # the attitude for the optional tilt filter
     roll_a = pitch_a = np.full(n, np.nan)
-    tilt: TiltFilter | None = options.tilt_filter
+    tilt: TiltFilter | None = options.resolved_tilt(profile)
+    estimator = options.resolved_estimator(profile)
     if tilt is not None:
         att = _from(rec, "ATTITUDE", sysid)
         if att is None:
@@ -438,6 +450,10 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
     vx, vy = np.where(codes == 0, vx, np.nan), np.where(codes == 0, vy, np.nan)
     engaged = fr.engaged[keep]
     sx, sy = fr.setpoint_x[keep], fr.setpoint_y[keep]
+    var_x = var_y = np.full(n, np.nan)
+    if estimator is VelocityEstimator.KF:
+        vx, vy, var_x, var_y = _kalman(rec, sysid, cfg, profile, options, gyro_hist, codes == 0, record, time_s,
+                                       integration_s, dt, vx, vy, gx, gy, range_m, notes, p.max_gyro_skew_s)
 
     # the sequential part: the live loop's run_control over all frames
     _, _, vx_used, vy_used, roll_cmd, pitch_cmd = run_control((0.0, 0.0), FILTER_RESET, codes == 0, engaged, vx, vy,
@@ -462,6 +478,39 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
     cols.update(_truth(rec, sysid, time_s))
     cols.update(_recorded(rec, time_s))
     return ReplayResult(rec.path, profile, gyro_source, cols, notes, int(rep.sum()))
+
+
+def _kalman(rec: Recording, sysid: int, cfg: Config, profile: Profile, options: EstimatorOptions,
+            gyro_hist: tuple[np.ndarray, ...] | None, usable: np.ndarray, record: np.ndarray, time_s: np.ndarray,
+            integration_s: np.ndarray, dt: np.ndarray, vx: np.ndarray, vy: np.ndarray, gx: np.ndarray,
+            gy: np.ndarray, range_m: np.ndarray, notes: list[str], max_skew_s: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The Kalman filter (``core.kalman_columns``) over the usable frames, with the vehicle's
+    ATTITUDE as the live core gets it; eq. 15 passes through where no attitude is fresh. With the
+    IMU's gyro (``gyro_hist``) its rotation is the mean over the flow sample's own window, from
+    the samples the live core holds at that frame (``core.kalman_measurement``)."""
+    settings = options.kalman or kalman_settings(cfg, profile)
+    zx, zy = vx.copy(), vy.copy()
+    span = np.array([kalman_span(a, b) for a, b in zip(integration_s.tolist(), dt.tolist(), strict=True)])
+    if gyro_hist is not None:
+        g_t, g_x, g_y, first, last = gyro_hist
+        rows = list(zip(g_t.tolist(), g_x.tolist(), g_y.tolist(), strict=True))
+        age = settings.flow_sample_age_s
+        for i in np.flatnonzero(usable).tolist():
+            t1 = float(time_s[i]) - age
+            mean = gyro_window_mean(rows[first[i]:last[i] + 1], t1 - float(span[i]), t1, max_skew_s)
+            zx[i], zy[i] = kalman_measurement(float(vx[i]), float(vy[i]), float(gx[i]), float(gy[i]), mean,
+                                              float(range_m[i]))
+    att = _from(rec, "ATTITUDE", sysid)
+    if att is None:
+        notes.append("no ATTITUDE from the vehicle: the Kalman filter passes eq. 15 through")
+        e = np.zeros(0)
+        cols: tuple[np.ndarray, ...] = (np.zeros(0, np.int64), e, e, e, e, e)
+    else:
+        cols = (att.record, np.asarray(att["time_boot_ms"], float) * 1e-3,
+                *(np.asarray(att[k], float) for k in ("roll", "pitch", "rollspeed", "pitchspeed")))
+    kf = VelocityKalman(settings)
+    return kalman_columns(kf, usable, record, time_s, span, zx, zy, range_m, *cols)
 
 
 def _cross_frame_checks(rec: Recording, sysid: int, cfg: Config, record: np.ndarray, codes: np.ndarray,
@@ -671,10 +720,12 @@ def write_parquet(result: ReplayResult, path: str | Path) -> list[str]:
 
 
 def _options(args: argparse.Namespace, cfg: Config) -> EstimatorOptions:
-    """The config's ``[companion]`` choices, overridden by ``--gyro`` / ``--filter`` when given."""
+    """The config's ``[companion]`` choices, overridden by ``--gyro`` / ``--estimator`` when given
+    (``--filter`` none/tilt: the older spelling of ``--estimator`` eq15/tilt)."""
     gyro = GyroSource(getattr(args, "gyro", None) or cfg.companion.gyro_source)
-    filt = getattr(args, "filter", None) or cfg.companion.velocity_filter
-    return EstimatorOptions(gyro, TiltFilter() if filt == "tilt" else None)
+    older = {"none": "eq15", "tilt": "tilt", None: None}[getattr(args, "filter", None)]
+    est = VelocityEstimator(getattr(args, "estimator", None) or older or cfg.companion.velocity_estimator)
+    return EstimatorOptions(gyro, TiltFilter() if est is VelocityEstimator.TILT else None, est)
 
 
 def run_cli(args: argparse.Namespace) -> int:
@@ -708,8 +759,8 @@ def run_cli(args: argparse.Namespace) -> int:
             names = write_parquet(result, parquet)
         outputs.append(parquet)
     err = sys.stderr
-    print(f"profile {profile.value} ({why}); gyro {result.gyro_source.value}"
-          f"{'; tilt filter' if _options(args, cfg).tilt_filter else ''}", file=err)
+    estimator = _options(args, cfg).resolved_estimator(profile)
+    print(f"profile {profile.value} ({why}); gyro {result.gyro_source.value}; estimator {estimator.value}", file=err)
     for line in rec.notes + result.notes:
         print(line, file=err)
     print(f"{len(result)} frames -> {' and '.join(outputs)} ({len(names)} columns)", file=err)

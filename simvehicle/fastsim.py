@@ -38,8 +38,8 @@ what ``simvehicle.scenarios.fly`` feeds it through MAVLink (gyro in integer mrad
 integer cm, times in integer µs), so the two agree frame for frame (tests/test_fastsim.py).
 
 Not modelled, and refused (``check_modelled``: a ConfigError naming the key, which ``simvehicle
-sweep`` prints as one line) rather than ignored: ``velocity_filter = "tilt"``, ``gyro_source =
-"flow"`` (the flow message's own body rate), a negative ``max_gyro_skew_s`` or
+sweep`` prints as one line) rather than ignored: ``velocity_estimator = "tilt"`` or ``"kf"``,
+``gyro_source = "flow"`` (the flow message's own body rate), a negative ``max_gyro_skew_s`` or
 ``range_timeout_s``, an effect outside ``MODELLED_EFFECTS``, and any key the engine does not read
 (``FIELDS_READ``; a new estimator option, say) set to anything but ``configs/paper.toml``'s
 value. Not modelled and not a config option: the cross-frame checks (``companion.core.
@@ -542,7 +542,9 @@ COMPANION_MODELLED: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "max_gyro_skew_s": ("it samples the gyro at the frame's own time: aligned for a skew >= 0", lambda v: v >= 0),
     "gyro_source": ("it flies the IMU gyro, as 'imu' (and 'auto' for the paper profile)",
                     lambda v: v in ("auto", "imu")),
-    "velocity_filter": ("it flies eq. 15 unfiltered, as 'none'", lambda v: v == "none"),
+    "velocity_estimator": ("it flies eq. 15 unfiltered, as 'eq15' (and 'auto' for the paper profile)",
+                           lambda v: v in ("auto", "eq15")),
+    "flow_sample_age_s": ("only the Kalman filter reads it, which it does not fly", lambda v: True),
 }
 #: the fields of each config section the engine reads (``_params``; ``sim.substeps_per_frame`` is
 #: the reference's step count: the engine integrates each frame exactly); any other field, in any

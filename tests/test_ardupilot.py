@@ -19,7 +19,7 @@ import pytest
 
 from companion.config import replace_section
 from companion.convert import _records, convert_tlog
-from companion.core import EstimatorOptions, GyroSource, TiltFilter
+from companion.core import EstimatorOptions, GyroSource, TiltFilter, VelocityEstimator
 from companion.outbound import quaternion_to_euler
 from companion.profiles import Profile, detect_profile
 from companion.recording import Recording, load_recording, read_recording_bytes
@@ -87,7 +87,8 @@ def lag_s(est: np.ndarray, ref: np.ndarray, frame_s: float = 0.02, max_lag: int 
 def cli_csv(tmp_path_factory) -> tuple[np.ndarray, str]:
     out = tmp_path_factory.mktemp("fa") / "flight_a.csv"
     r = subprocess.run([sys.executable, "-m", "companion", "replay", str(FLIGHT_A), "--profile", "ardupilot",
-                        "--csv", str(out)], capture_output=True, text=True, timeout=180, cwd=REPO)
+                        "--estimator", "eq15", "--csv", str(out)], capture_output=True, text=True, timeout=180,
+                       cwd=REPO)
     assert r.returncode == 0, r.stderr
     return np.genfromtxt(out, delimiter=",", names=True, dtype=None, encoding="utf-8"), r.stderr
 
@@ -102,11 +103,11 @@ def test_detected_and_named_as_ardupilot(rec):
 
 
 def test_replay_is_at_least_as_accurate_as_the_plain_companion(cli_csv, ekf, plain, rec):
-    """Default ``--profile ardupilot`` (gyro: the flow message's own body rate) against the EKF
+    """``--profile ardupilot --estimator eq15`` (gyro: the flow message's own body rate) against the EKF
     over GUIDED_NOGPS: no worse than the recorded VISION_SPEED_ESTIMATE (README: 0.113 / 0.112),
     and down at the simulated flow noise combined with the EKF's own error."""
     data, stderr = cli_csv
-    assert "profile ardupilot" in stderr and "gyro flow" in stderr
+    assert "profile ardupilot" in stderr and "gyro flow" in stderr and "estimator eq15" in stderr
     ms = np.round(data["frame_time_s"] * 1e3).astype(np.int64)
     e_replay = errors(ms, data["vx_m_s"], data["vy_m_s"], ekf, plain)
     pm = np.array(sorted(plain))
@@ -183,12 +184,15 @@ def test_flight_a_slice_fast_replay_equals_the_live_path(tmp_path, paper_cfg):
             t0 = t_us if t0 is None else t0
             if 49e6 <= t_us - t0 <= 56e6:
                 w.write_bytes(packet, t_us * 1e-6)
-    for options in (EstimatorOptions(), EstimatorOptions(GyroSource.IMU, TiltFilter())):
+    for options in (EstimatorOptions(), EstimatorOptions(GyroSource.IMU, TiltFilter()),
+                    EstimatorOptions(estimator=VelocityEstimator.KF),
+                    EstimatorOptions(GyroSource.IMU, estimator=VelocityEstimator.KF)):
         res = replay(load_recording(path), paper_cfg, Profile.ARDUPILOT, options)
         outs = replay_live(path, paper_cfg, Profile.ARDUPILOT, options)
         assert len(res) == len(outs) > 300
         for col, attr in (("vx_m_s", "vx_m_s"), ("vy_m_s", "vy_m_s"), ("roll_cmd_rad", "roll_cmd_rad"),
-                          ("pitch_cmd_rad", "pitch_cmd_rad"), ("dt_s", "dt_s"), ("gyro_x_rad_s", "gyro_x_rad_s")):
+                          ("pitch_cmd_rad", "pitch_cmd_rad"), ("dt_s", "dt_s"), ("gyro_x_rad_s", "gyro_x_rad_s"),
+                          ("vx_raw_m_s", "vx_raw_m_s")):
             np.testing.assert_array_equal(res[col], [getattr(o, attr) for o in outs], err_msg=col)
         assert 0 < res["engaged"].sum() < len(res)  # the take-over is inside
 

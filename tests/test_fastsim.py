@@ -418,7 +418,8 @@ def test_held_frames_level_the_vehicle(paper_cfg):
 
 
 @pytest.mark.parametrize("key,value,does", [
-    ("velocity_filter", "tilt", "it flies eq. 15 unfiltered"),
+    ("velocity_estimator", "tilt", "it flies eq. 15 unfiltered"),
+    ("velocity_estimator", "kf", "it flies eq. 15 unfiltered"),
     ("gyro_source", "flow", "it flies the IMU gyro"),
     ("max_gyro_skew_s", -0.001, "it samples the gyro at the frame's own time"),
     ("range_timeout_s", -0.1, "it samples the range at every frame"),

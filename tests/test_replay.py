@@ -30,6 +30,7 @@ from companion.core import (
     HoldCause,
     StepParams,
     TiltFilter,
+    VelocityEstimator,
     align_gyro_columns,
     gate_frame,
     gate_frames,
@@ -249,6 +250,12 @@ FAULTS = {
     "ardupilot_imu_tilt_filter": (Profile.ARDUPILOT, _ardupilot_faults,
                                   EstimatorOptions(GyroSource.IMU, TiltFilter())),
     "px4_faults_flow_gyro": (Profile.PX4, _px4_faults, EstimatorOptions(GyroSource.FLOW)),
+    # the Kalman filter (issue 19): with the frame-mean gyro (paper, imu), the flow's own (px4, ardupilot)
+    "paper_sensor_faults_kf": (Profile.PAPER, _paper_faults, EstimatorOptions(estimator=VelocityEstimator.KF)),
+    "paper_mode_and_gcs_kf": (Profile.PAPER, _mode_and_gcs, EstimatorOptions(estimator=VelocityEstimator.KF)),
+    "ardupilot_faults_and_repeats_kf": (Profile.ARDUPILOT, _ardupilot_faults,
+                                        EstimatorOptions(estimator=VelocityEstimator.KF)),
+    "px4_faults_kf": (Profile.PX4, _px4_faults, EstimatorOptions(estimator=VelocityEstimator.AUTO)),
 }
 
 
@@ -270,7 +277,7 @@ def test_fast_replay_equals_the_live_path_under_faults(flights, paper_cfg, tmp_p
         "ardupilot_faults_and_repeats": {"FLOW_INVALID", "FLOW_QUALITY", "FLOW_SPIKE", "GYRO_INVALID"},
         "ardupilot_imu_tilt_filter": {"FLOW_INVALID", "FLOW_QUALITY", "FLOW_SPIKE"},
         "px4_faults_flow_gyro": {"FLOW_INVALID"},
-    }[case]
+    }[case.removesuffix("_kf") if case != "px4_faults_kf" else "px4_faults_flow_gyro"]
     assert expected <= causes, causes
 
 
@@ -333,7 +340,8 @@ def test_repeated_flow_messages_are_not_counted_twice(flights, paper_cfg, tmp_pa
         return [(msg, t), (again, t + 0.01)]
 
     rewrite(src, path, double)
-    for options in (EstimatorOptions(), EstimatorOptions(GyroSource.IMU, TiltFilter())):
+    for options in (EstimatorOptions(), EstimatorOptions(GyroSource.IMU, TiltFilter()),
+                    EstimatorOptions(estimator=VelocityEstimator.KF)):
         base = replay(load_recording(src), paper_cfg, Profile.ARDUPILOT, options)
         res = replay(load_recording(path), paper_cfg, Profile.ARDUPILOT, options)
         assert res.n_repeats == len(base) == len(res)

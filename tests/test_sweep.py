@@ -241,7 +241,7 @@ def test_sweep_command_line_bad_file_is_one_line(tmp_path):
     assert "Traceback" not in r.stderr
 
 
-@pytest.mark.parametrize("key,value", [("velocity_filter", '"tilt"'), ("gyro_source", '"flow"')])
+@pytest.mark.parametrize("key,value", [("velocity_estimator", '"tilt"'), ("gyro_source", '"flow"')])
 def test_sweep_refuses_what_the_fast_engine_does_not_model(tmp_path, key, value):
     """Issue 13: a sweep over a config the fast engine cannot fly as the companion does (here the
     tilt filter or the flow message's own body rate) stops with one line naming the key, before
