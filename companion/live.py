@@ -817,11 +817,12 @@ class LiveCompanion:
             self.core.pi.state = PiState()  # the pilot flies: no integration
             if not out.holding:
                 self._send(outbound.vision_speed(self.conn.mav, int(round(out.time_s * 1e6)), out.vx_m_s,
-                                                 out.vy_m_s))
+                                                 out.vy_m_s, out.vx_var_m2_s2, out.vy_var_m2_s2))
             return
         self.last_vehicle_cmd_wall = now
         self._command(out.time_s, out.roll_cmd_rad, out.pitch_cmd_rad, out.vx_set_m_s, out.vy_set_m_s, now,
-                      estimate=None if self.last_held else (out.vx_m_s, out.vy_m_s))
+                      estimate=None if self.last_held else (out.vx_m_s, out.vy_m_s, out.vx_var_m2_s2,
+                                                            out.vy_var_m2_s2))
         self._say_backlog()
         self._report(out.hold_cause, now)
 
@@ -874,8 +875,9 @@ class LiveCompanion:
             self._report(HoldCause.FLOW_STALE, now)
 
     def _command(self, time_s: float, roll: float, pitch: float, vx_set: float, vy_set: float, now: float, *,
-                 estimate: tuple[float, float] | None) -> None:
-        """Publish the step: POSITION_TARGET_LOCAL_NED, VISION_SPEED_ESTIMATE, then SET_ATTITUDE_TARGET."""
+                 estimate: tuple[float, float, float, float] | None) -> None:
+        """Publish the step: POSITION_TARGET_LOCAL_NED, VISION_SPEED_ESTIMATE, then SET_ATTITUDE_TARGET.
+        ``estimate``: (vx, vy, var_x, var_y), the variances NaN when the estimator gives none."""
         roll, pitch, ok = safe_attitude(roll, pitch, self.tilt_limit)
         if not ok:
             self.counters["commands clipped or levelled"] += 1
@@ -884,7 +886,7 @@ class LiveCompanion:
         if not (math.isfinite(vx_set) and math.isfinite(vy_set)):
             vx_set = vy_set = 0.0
         msgs = [outbound.position_target(enc, ms, vx_set, vy_set)]
-        if estimate is not None and all(math.isfinite(v) for v in estimate):
+        if estimate is not None and all(math.isfinite(v) for v in estimate[:2]):
             msgs.append(outbound.vision_speed(enc, int(round(time_s * 1e6)), *estimate))
         msgs.append(outbound.set_attitude_target(enc, ms, self.router.vehicle_sysid or 1, roll, pitch,
                                                  self.yaw_hold, self.vehicle_compid))

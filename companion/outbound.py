@@ -3,6 +3,7 @@ VISION_SPEED_ESTIMATE and its HEARTBEAT. Conversion to MAVLink units and fields 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from companion.mavlink_ids import COMPANION_COMPONENT, MAV_FRAME_BODY_FRD
@@ -30,9 +31,18 @@ def position_target(enc: Any, time_boot_ms: int, vx_m_s: float, vy_m_s: float) -
                                                 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
-def vision_speed(enc: Any, usec: int, vx_m_s: float, vy_m_s: float) -> Any:
-    nan = float("nan")
-    return enc.vision_speed_estimate_encode(int(usec), vx_m_s, vy_m_s, 0.0, [nan] * 9, 0)
+def vision_speed(enc: Any, usec: int, vx_m_s: float, vy_m_s: float, vx_var_m2_s2: float = math.nan,
+                 vy_var_m2_s2: float = math.nan) -> Any:
+    """VISION_SPEED_ESTIMATE (body axes; ``z`` 0, not estimated). ``covariance`` is the 3x3 of
+    (vx, vy, vz) row-major: the per-axis variances (m^2/s^2) on the diagonal when both are
+    known (the Kalman filter's), 0 between the axes (estimated independently), NaN for vz;
+    without them all NaN (MAVLink: NaN in the first element = unknown)."""
+    nan = math.nan
+    if math.isfinite(vx_var_m2_s2) and math.isfinite(vy_var_m2_s2):
+        cov = [vx_var_m2_s2, 0.0, 0.0, 0.0, vy_var_m2_s2, 0.0, 0.0, 0.0, nan]
+    else:
+        cov = [nan] * 9
+    return enc.vision_speed_estimate_encode(int(usec), vx_m_s, vy_m_s, 0.0, cov, 0)
 
 
 def heartbeat(enc: Any) -> Any:

@@ -35,7 +35,9 @@ flow message's own (boot) time; ``dt_s`` the time the frame covers; ``vx_set_m_s
 ``vx_raw_m_s``, ``vy_raw_m_s`` eq. 15 before the filter; ``scene_rate_x/y_rad_s`` the flow in the
 paper's convention; ``flow_x/y_counts`` (paper profile; NaN otherwise); ``quality``;
 ``gyro_x/y_rad_s`` and ``range_m`` as used; then, when the recording has them, ``truth_vx/vy_m_s``
-and the companion's recorded ``rec_roll/pitch_cmd_rad`` and ``rec_vx/vy_m_s``.
+and the companion's recorded ``rec_roll/pitch_cmd_rad`` and ``rec_vx/vy_m_s``; last
+``vx_var_m2_s2``, ``vy_var_m2_s2``, the variance of the estimate when the Kalman filter made it
+(``estimator.VelocityKalman``; NaN with the other estimators and on held frames).
 """
 
 from __future__ import annotations
@@ -117,7 +119,7 @@ CSV_COLUMNS = (
     "vy_set_m_s", "hold_cause", "engaged", "vx_raw_m_s", "vy_raw_m_s", "scene_rate_x_rad_s",
     "scene_rate_y_rad_s", "flow_x_counts", "flow_y_counts", "quality", "gyro_x_rad_s", "gyro_y_rad_s",
     "range_m", "truth_vx_m_s", "truth_vy_m_s", "rec_roll_cmd_rad", "rec_pitch_cmd_rad", "rec_vx_m_s",
-    "rec_vy_m_s")
+    "rec_vy_m_s", "vx_var_m2_s2", "vy_var_m2_s2")
 _OPTIONAL = ("truth_vx_m_s", "truth_vy_m_s", "rec_roll_cmd_rad", "rec_pitch_cmd_rad", "rec_vx_m_s", "rec_vy_m_s")
 _TIME_COLUMNS = ("t_s", "frame_time_s")
 
@@ -474,6 +476,7 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
         "vx_raw_m_s": vx_raw, "vy_raw_m_s": vy_raw, "scene_rate_x_rad_s": rate_x, "scene_rate_y_rad_s": rate_y,
         "flow_x_counts": _take(fc.counts_x, keep, n_msg), "flow_y_counts": _take(fc.counts_y, keep, n_msg),
         "quality": quality, "gyro_x_rad_s": gx, "gyro_y_rad_s": gy, "range_m": range_m,
+        "vx_var_m2_s2": var_x, "vy_var_m2_s2": var_y,
     }
     cols.update(_truth(rec, sysid, time_s))
     cols.update(_recorded(rec, time_s))

@@ -192,8 +192,11 @@ def test_flight_a_slice_fast_replay_equals_the_live_path(tmp_path, paper_cfg):
         assert len(res) == len(outs) > 300
         for col, attr in (("vx_m_s", "vx_m_s"), ("vy_m_s", "vy_m_s"), ("roll_cmd_rad", "roll_cmd_rad"),
                           ("pitch_cmd_rad", "pitch_cmd_rad"), ("dt_s", "dt_s"), ("gyro_x_rad_s", "gyro_x_rad_s"),
-                          ("vx_raw_m_s", "vx_raw_m_s")):
+                          ("vx_raw_m_s", "vx_raw_m_s"), ("vx_var_m2_s2", "vx_var_m2_s2"),
+                          ("vy_var_m2_s2", "vy_var_m2_s2")):
             np.testing.assert_array_equal(res[col], [getattr(o, attr) for o in outs], err_msg=col)
+        kf = options.estimator is VelocityEstimator.KF
+        assert np.isfinite(res["vx_var_m2_s2"]).any() == kf
         assert 0 < res["engaged"].sum() < len(res)  # the take-over is inside
 
 

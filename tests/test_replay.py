@@ -93,7 +93,8 @@ def assert_same_as_live(res: ReplayResult, outs: list) -> None:
     fields = {"frame_time_s": "time_s", "dt_s": "dt_s", "vx_m_s": "vx_m_s", "vy_m_s": "vy_m_s",
               "vx_raw_m_s": "vx_raw_m_s", "vy_raw_m_s": "vy_raw_m_s", "vx_set_m_s": "vx_set_m_s",
               "vy_set_m_s": "vy_set_m_s", "roll_cmd_rad": "roll_cmd_rad", "pitch_cmd_rad": "pitch_cmd_rad",
-              "gyro_x_rad_s": "gyro_x_rad_s", "gyro_y_rad_s": "gyro_y_rad_s", "range_m": "range_m"}
+              "gyro_x_rad_s": "gyro_x_rad_s", "gyro_y_rad_s": "gyro_y_rad_s", "range_m": "range_m",
+              "vx_var_m2_s2": "vx_var_m2_s2", "vy_var_m2_s2": "vy_var_m2_s2"}
     for col, attr in fields.items():
         live = np.array([getattr(o, attr) for o in outs], dtype=float)
         np.testing.assert_array_equal(res[col], live, err_msg=col)
@@ -279,6 +280,8 @@ def test_fast_replay_equals_the_live_path_under_faults(flights, paper_cfg, tmp_p
         "px4_faults_flow_gyro": {"FLOW_INVALID"},
     }[case.removesuffix("_kf") if case != "px4_faults_kf" else "px4_faults_flow_gyro"]
     assert expected <= causes, causes
+    kf = options.resolved_estimator(prof) is VelocityEstimator.KF
+    assert np.isfinite(res["vx_var_m2_s2"]).any() == kf
 
 
 def test_out_of_order_duplicate_and_reboot_frames(flights, paper_cfg, tmp_path):
