@@ -459,27 +459,32 @@ def _non_overlapping(s: np.ndarray, end: np.ndarray) -> np.ndarray:
     return keep
 
 
-def _between(s: np.ndarray, end: np.ndarray) -> np.ndarray:
-    """Bytes from the end of each packet to the start of the next: ``s[1:] - end[:-1]`` (n - 1,)."""
-    return s[1:] - end[:-1]
+def _between(pk: _Packets) -> np.ndarray:
+    """Bytes from the end of each packet to the start of the next: ``s[1:] - end[:-1]`` (n - 1,),
+    without making ``end`` for every packet."""
+    out = np.subtract(pk.s[1:], pk.s[:-1])
+    out -= pk.total[:-1]
+    return out
 
 
-def _gaps(s: np.ndarray, end: np.ndarray, n_bytes: int, *, header: int = TIME_HEADER_LEN,
-          between: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _gaps(pk: _Packets, n_bytes: int, *, header: int = TIME_HEADER_LEN, between: np.ndarray | None = None
+          ) -> tuple[np.ndarray, np.ndarray]:
     """Byte ranges ``[a, b)`` not covered by any record (``header`` time bytes + packet) of
-    the packets ``[s, end)`` (``s`` sorted, bodies disjoint). ``header=0``: the ranges between
-    packet bodies, longer than a time header (where another packet could be). ``between``:
-    ``_between(s, end)`` if already at hand."""
+    the packets ``pk`` (sorted, bodies disjoint). ``header=0``: the ranges between packet
+    bodies, longer than a time header (where another packet could be). ``between``:
+    ``_between(pk)`` if already at hand."""
+    s = pk.s
     if len(s) == 0:
         return np.array([0]), np.array([n_bytes])
     least = 0 if header else TIME_HEADER_LEN
-    inner = np.flatnonzero((_between(s, end) if between is None else between) > header + least)
+    inner = np.flatnonzero((_between(pk) if between is None else between) > header + least)
+    last_end = int(s[-1]) + int(pk.total[-1])
     a: list[Any] = [[0]] if s[0] - header > least else []
-    a += [end[inner]]
+    a += [s[inner] + pk.total[inner]]
     b: list[Any] = [[s[0] - header]] if s[0] - header > least else []
     b += [s[inner + 1] - header]
-    if n_bytes > end[-1] + least:
-        a.append([end[-1]])
+    if n_bytes > last_end + least:
+        a.append([last_end])
         b.append([n_bytes])
     return np.concatenate(a).astype(np.int64), np.concatenate(b).astype(np.int64)
 
@@ -859,14 +864,14 @@ def _find_packets(buf: np.ndarray, n_bytes: int, progress: _Progress
             other_parts.append(s[~chained & fits])
     good = _Packets.concat(good_parts)
     del good_parts
-    between = _between(good.s, good.end)  # kept while the packets are, for the gaps and the overlaps
+    between = _between(good)  # kept while the packets are, for the gaps and the overlaps
     if not bool(np.all(between >= 0)):
         good = good.where(_non_overlapping(good.s, good.end))
-        between = _between(good.s, good.end)
+        between = _between(good)
 
     # pass 2: every other candidate whose body lies between the bodies of the packets found
     # (its time header may overlap the packet before; the next one's may overlap it)
-    gap_a, gap_b = _gaps(good.s, good.end, n_bytes, header=0, between=between)
+    gap_a, gap_b = _gaps(good, n_bytes, header=0, between=between)
     if len(gap_a):
         rest_s = np.concatenate(other_parts) if other_parts else np.zeros(0, dtype=np.int64)
         gi = np.searchsorted(gap_a, rest_s, side="right") - 1
@@ -876,14 +881,14 @@ def _find_packets(buf: np.ndarray, n_bytes: int, progress: _Progress
         rest = rest.where(_non_overlapping(rest.s, rest.end))
         order = np.argsort(np.concatenate((good.s, rest.s)), kind="stable")
         good = _Packets.concat([good, rest]).subset(order)
-        between = _between(good.s, good.end)
+        between = _between(good)
     del other_parts, gap_a, gap_b
     progress.advance(5.0)
 
     # what is left between the records: follow the expected record chain through each gap
     damage = _Damage()
     unknown: list[int] = []
-    gap_a, gap_b = _gaps(good.s, good.end, n_bytes, between=between)
+    gap_a, gap_b = _gaps(good, n_bytes, between=between)
     for a, b in zip(gap_a.tolist(), gap_b.tolist(), strict=True):
         walk = _walk_gap(buf, a, b, n_bytes)
         # packets of ids the dialect does not define: kept where they fill the gap exactly
@@ -904,7 +909,7 @@ def _find_packets(buf: np.ndarray, n_bytes: int, progress: _Progress
         extra, _ = _parse_headers(buf, np.array(unknown, dtype=np.int64))
         order = np.argsort(np.concatenate((good.s, extra.s)), kind="stable")
         good = _Packets.concat([good, extra]).subset(order)
-        between = _between(good.s, good.end)
+        between = _between(good)
     progress.advance(5.0)
 
     overlapped = np.zeros(len(good.s), dtype=bool)

@@ -111,6 +111,35 @@ uint16_t fh_crc_packet(const uint8_t *base, const uint8_t *p, int64_t n, uint8_t
 
 static inline int is_stx(uint8_t b) { return (uint8_t)(b - STX_V2) < 2; }
 
+/* Which of the SCAN_BYTES bytes at p are 0xFD or 0xFE: bit SCAN_BIT * j for byte j. */
+#if defined(__SSE2__) && !defined(FH_NO_SSE2)
+#include <emmintrin.h>
+#define SCAN_BYTES 16
+#define SCAN_BIT 1
+static inline uint64_t stx_bits(const uint8_t *p) {
+    __m128i v = _mm_loadu_si128((const __m128i *)p);
+    __m128i hit = _mm_or_si128(_mm_cmpeq_epi8(v, _mm_set1_epi8((char)STX_V2)),
+                               _mm_cmpeq_epi8(v, _mm_set1_epi8((char)STX_V1)));
+    return (uint64_t)(uint32_t)_mm_movemask_epi8(hit);
+}
+#else
+#define SCAN_BYTES 8
+#define SCAN_BIT 8
+static inline uint64_t stx_bits(const uint8_t *p) {
+    uint64_t w;
+    memcpy(&w, p, 8);
+#if defined(__BYTE_ORDER__) && __BYTE_ORDER__ == __ORDER_BIG_ENDIAN__
+    w = __builtin_bswap64(w); /* byte j in bits 8j..8j+7 */
+#endif
+    /* bit 7 of each byte that is 0xFD or 0xFE: 0xFD-0xFF (the low 7 bits plus 3 carry into bit
+     * 7, no carry crosses a byte), less 0xFF (a zero byte of ~w, the exact test) */
+    uint64_t ge = ((w & 0x7F7F7F7F7F7F7F7FULL) + 0x0303030303030303ULL) & w & 0x8080808080808080ULL;
+    uint64_t nw = ~w;
+    uint64_t ff = ~(((nw & 0x7F7F7F7F7F7F7F7FULL) + 0x7F7F7F7F7F7F7F7FULL) | nw) & 0x8080808080808080ULL;
+    return (ge & ~ff) >> 7; /* bit 8j */
+}
+#endif
+
 /* where a packet starting at s ends, by its STX, length and signed flag (_claimed_end) */
 static inline int64_t claimed_end(const uint8_t *buf, int64_t s) {
     int v2 = buf[s] == STX_V2;
@@ -137,19 +166,12 @@ int64_t fh_scan(const uint8_t *buf, int64_t n_bytes, int64_t pos, int64_t stop, 
     int64_t ng = 0, no = 0;
     if (pos < TIME_HEADER_LEN) pos = TIME_HEADER_LEN;
     if (stop > n_bytes) stop = n_bytes;
-    for (int64_t word = pos & ~(int64_t)7; word < stop; word += 8) {
-        uint64_t w;
-        memcpy(&w, buf + word, 8); /* buf is padded past n_bytes */
-        /* bit 7 of each byte that is 0xFD or 0xFE: 0xFD-0xFF (the low 7 bits plus 3 carry into bit
-         * 7, no carry crosses a byte), less 0xFF (a zero byte of ~w, the exact test) */
-        uint64_t ge = ((w & 0x7F7F7F7F7F7F7F7FULL) + 0x0303030303030303ULL) & w & 0x8080808080808080ULL;
-        uint64_t nw = ~w;
-        uint64_t ff = ~(((nw & 0x7F7F7F7F7F7F7F7FULL) + 0x7F7F7F7F7F7F7F7FULL) | nw) & 0x8080808080808080ULL;
-        uint64_t m = ge & ~ff;
-        if (word < pos) m &= ~0ULL << (8 * (pos - word));
-        if (stop - word < 8) m &= (1ULL << (8 * (stop - word))) - 1;
+    for (int64_t block = pos & ~(int64_t)(SCAN_BYTES - 1); block < stop; block += SCAN_BYTES) {
+        uint64_t m = stx_bits(buf + block); /* buf is padded past n_bytes */
+        if (block < pos) m &= ~0ULL << (SCAN_BIT * (pos - block));
+        if (stop - block < SCAN_BYTES) m &= (1ULL << (SCAN_BIT * (stop - block))) - 1;
         while (m) {
-            int64_t s = word + (__builtin_ctzll(m) >> 3);
+            int64_t s = block + __builtin_ctzll(m) / SCAN_BIT;
             m &= m - 1;
             if (ng >= cap_good || no >= cap_other) {
                 *n_good = ng;
