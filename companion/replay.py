@@ -408,7 +408,9 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
     # the latest downward range reading received before each frame
     ds = _from(rec, "DISTANCE_SENSOR", sysid)
     if ds is not None:
-        ds = ds.select(ds["orientation"] == DOWNWARD)
+        down = ds["orientation"] == DOWNWARD
+        if not down.all():  # (select copies every field)
+            ds = ds.select(down)
     if ds is None or len(ds) == 0:
         notes.append("no downward DISTANCE_SENSOR (orientation 25) from the vehicle: every frame holds")
         range_found = np.zeros(n, dtype=bool)
