@@ -38,10 +38,12 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config, Effects, WindForce, load_config
+from companion.core import EstimatorOptions, GyroSource, VelocityEstimator
 from companion.diagnose.channels import FlightData, extract
 from companion.errors import RecordingError, check_output, writing
 from companion.fitted_model import heldout_split_s
 from companion.mavlink_ids import COMPANION_COMPONENT
+from companion.profiles import Profile
 from companion.recording import Recording, load_recording
 from companion.report_html import write_refly_html
 from simvehicle.fastsim import simulate_batch
@@ -228,6 +230,26 @@ def fly_segments(data: FlightData, configs: list[Config], *, turbulence_sigma_n:
     return out
 
 
+def engine_differences(cfg: Config, profile: str) -> list[str]:
+    """What the companion this config selects for ``profile`` does that the fast engine (eq. 15 on
+    the IMU gyro) does not: the simulated estimate and command differ from the recording's frame by
+    frame by that, whatever the model (a note each; the 1 s means of the commanded tilt, where drag
+    and wind show, are affected least)."""
+    opts = EstimatorOptions.from_config(cfg)
+    prof = Profile(profile)
+    out = []
+    est = opts.resolved_estimator(prof)
+    if est is not VelocityEstimator.EQ15:
+        out.append(f"the companion this config selects for the {profile} profile flies velocity_estimator = "
+                   f"{est.value} ({cfg.companion.velocity_estimator!r} in the config); the fast engine flies eq. 15: "
+                   "its estimate and command are eq. 15's, noisier frame by frame than the recording's")
+    gyro = opts.resolved_gyro(prof)
+    if gyro is not GyroSource.IMU:
+        out.append(f"the companion this config selects for the {profile} profile takes the gyro from the flow "
+                   "message (gyro_source); the fast engine uses the IMU's")
+    return out
+
+
 def refly_recording(path: str | Path, cfg: Config, *, profile: str | None = None, held_out: bool = True,
                     carry_wind: bool = True) -> Track:
     """Fly ``path`` again with ``nominal_of(cfg)`` and ``cfg``. ``held_out``: score the half of the
@@ -254,6 +276,7 @@ def refly_recording(path: str | Path, cfg: Config, *, profile: str | None = None
         score, scored_on = flown, "every frame (another recording of the vehicle)"
     if not cfg.effects.active():
         notes.append("the config has no [effects.*]: the fitted model is the nominal one")
+    notes += engine_differences(cfg, data.profile)
     return Track(Path(path).name, data.t_s, data.seg, recorded_channels(rec, data), nom, fit, score, scored_on,
                  data, carry_wind, notes)
 

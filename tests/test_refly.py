@@ -17,10 +17,18 @@ from companion.config import (
     LinearDrag,
     WindForce,
     load_config,
+    replace_section,
     with_effects,
 )
 from simvehicle.flights import flight_plan
-from simvehicle.refly import TURB_EDGE_FRAMES, force_residual, refly_recording, scores, window_kernel
+from simvehicle.refly import (
+    TURB_EDGE_FRAMES,
+    engine_differences,
+    force_residual,
+    refly_recording,
+    scores,
+    window_kernel,
+)
 from simvehicle.scenarios import Scenario, fly
 
 REPO = Path(__file__).resolve().parent.parent
@@ -136,3 +144,15 @@ def test_refly_cli_json_report_and_also(effects_flight, tmp_path):
 def test_refly_of_a_missing_recording_is_one_line(tmp_path):
     r = _run("simvehicle", "refly", str(tmp_path / "nope.tlog"))
     assert r.returncode == 4 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_refly_says_where_the_companion_the_config_selects_is_not_the_fast_engines(paper_cfg):
+    """The fast engine flies eq. 15 on the IMU gyro: a config whose companion flies the Kalman filter
+    or the flow message's gyro for the recording's profile gets a note for each; the paper profile's
+    default (eq. 15, IMU) none."""
+    assert engine_differences(paper_cfg, "paper") == []
+    notes = engine_differences(paper_cfg, "ardupilot")  # auto: kf and the flow's gyro there
+    assert len(notes) == 2 and "kf" in notes[0] and "gyro_source" in notes[1]
+    eq15 = replace_section(paper_cfg, "companion", velocity_estimator="eq15", gyro_source="imu")
+    assert engine_differences(eq15, "ardupilot") == []
+    assert "kf" in engine_differences(replace_section(paper_cfg, "companion", velocity_estimator="kf"), "paper")[0]
