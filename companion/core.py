@@ -121,6 +121,29 @@ _CODE = {c: i for i, c in enumerate(CAUSE_CODES)}
 CROSS_FRAME_CAUSES = (HoldCause.VELOCITY_JUMP, HoldCause.FLOW_FROZEN, HoldCause.GYRO_FROZEN)
 
 
+class FrameOrder(enum.Enum):
+    """Where a flow frame's time stands against the last frame's (``classify_frame``)."""
+
+    NEW = "new"
+    DUPLICATE = "duplicate or out of order"
+    REBOOT = "vehicle reboot"
+
+
+def classify_frame(prev_time_s: float | None, time_s: float, reboot_jump_s: float = FRAME_REBOOT_S) -> FrameOrder:
+    """Is a flow frame at ``time_s`` (s) new, a duplicate or out of order (not after the last
+    frame's ``prev_time_s``, by at most ``reboot_jump_s``), or the first after a vehicle reboot
+    (further back)? A time that is not a number, or no last frame, is new. The time part of
+    ``repeat_mask`` and ``CompanionCore.on_flow``'s rule, and the live session's."""
+    if prev_time_s is None:
+        return FrameOrder.NEW
+    dt = time_s - prev_time_s
+    if -reboot_jump_s <= dt <= 0.0:
+        return FrameOrder.DUPLICATE
+    if dt < -reboot_jump_s:
+        return FrameOrder.REBOOT
+    return FrameOrder.NEW
+
+
 class GyroSource(enum.StrEnum):
     AUTO = "auto"
     IMU = "imu"
@@ -1056,9 +1079,9 @@ class CompanionCore:
         prev = self._last_payload
         if prev is None or self.last is None:
             return False
-        dt = f.time_s - self._last_used_time_s
-        if -FRAME_REBOOT_S <= dt <= 0.0:
+        if classify_frame(self._last_used_time_s, f.time_s) is FrameOrder.DUPLICATE:
             return True
+        dt = f.time_s - self._last_used_time_s
         window = self.params.repeat_window_s
         if math.isfinite(f.integration_s) and f.integration_s > 0.0:  # the reading states its own span
             window = REPEAT_WINDOW_FRAMES * f.integration_s
@@ -1071,6 +1094,33 @@ class CompanionCore:
     def is_repeat(self, f: FlowColumns) -> bool:
         """Whether ``on_flow`` would take ``f`` as a repeat (and step nothing)."""
         return self._is_repeat(f, self.payload(f))
+
+    # -- what a live session asks of the core (companion.session) ------------------------------
+
+    @property
+    def last_frame_time_s(self) -> float | None:
+        """The time of the last flow frame stepped (a repeat excluded) or skipped, s; None before any."""
+        t = self._last_used_time_s
+        return t if math.isfinite(t) else None
+
+    def frame_order(self, time_s: float) -> FrameOrder:
+        """Where a flow frame at ``time_s`` stands against the last frame stepped or skipped
+        (``classify_frame``): a duplicate is what ``on_flow`` returns as a repeat by its time."""
+        return classify_frame(self._last_used_time_s, time_s)
+
+    def skip_frame(self, time_s: float) -> None:
+        """A flow frame the caller does not step (too old to fly on): frame order and the repeat
+        window run from its time; the estimator, the integrator and the checks are untouched."""
+        if math.isfinite(time_s):
+            self._last_used_time_s = float(time_s)
+
+    def reset_integrator(self) -> None:
+        """The PI integrals back to zero (a take-over; every step while the pilot flies)."""
+        self.pi.state = PiState()
+
+    def restart_checks(self) -> None:
+        """Forget the cross-frame checks' history (``Plausibility``): the vehicle's clock restarted."""
+        self.plausible.reset()
 
     def on_flow(self, f: FlowColumns) -> StepOutput:
         """Run one control step on a flow frame (scalars). Always returns a finite command."""

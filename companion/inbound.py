@@ -43,6 +43,7 @@ class MessageRouter:
     #: messages ignored (wrong sender or target, wrong orientation, bad values) or setpoints clipped, by reason
     ignored: dict[str, int] = field(default_factory=dict)
     yaw_rad: float = 0.0
+    #: the ``now_s`` of the last setpoint taken (None before any)
     last_setpoint_time: float | None = None
 
     def _ignore(self, why: str) -> None:
@@ -51,7 +52,7 @@ class MessageRouter:
     def handle(self, msg: Any, now_s: float | None = None) -> StepOutput | None:
         mtype = msg.get_type()
         if mtype in ("SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL"):
-            self._setpoint(msg, mtype, now_s)
+            self.setpoint(msg, now_s)
             return None
         if self.vehicle_sysid is not None and msg.get_srcSystem() != self.vehicle_sysid:
             if mtype in GYRO_MESSAGES or mtype in ("DISTANCE_SENSOR", "OPTICAL_FLOW", "OPTICAL_FLOW_RAD"):
@@ -79,31 +80,36 @@ class MessageRouter:
             return self.core.on_flow(scalar_flow(msg, self.profile, self.core.cfg.flow_sensor.q_rad_per_count))
         return None
 
-    def _setpoint(self, msg: Any, mtype: str, now_s: float | None) -> None:
+    def setpoint(self, msg: Any, now_s: float | None = None) -> bool:
+        """A SET_POSITION_TARGET_LOCAL_NED or MANUAL_CONTROL: its velocity setpoint to the core
+        (``CompanionCore.set_setpoint``). Returns whether it was taken (False: not for us, or
+        ignored with the reason counted in ``ignored``)."""
+        mtype = msg.get_type()
         target = msg.target if mtype == "MANUAL_CONTROL" else msg.target_system
         if self.vehicle_sysid is not None and target not in (0, self.vehicle_sysid):
             self._ignore("setpoint for another system")
-            return
+            return False
         vmax = self.core.cfg.companion.max_speed_m_s
         if mtype == "MANUAL_CONTROL":
             vx, vy = msg.x / 1000.0 * vmax, msg.y / 1000.0 * vmax
         else:
             if msg.target_component not in (MAV_COMP_ID_ALL, COMPANION_COMPONENT):
-                return
+                return False
             if msg.type_mask & VELOCITY_IGNORED:
                 self._ignore("setpoint without a horizontal velocity")
-                return
+                return False
             vx, vy = float(msg.vx), float(msg.vy)
             if msg.coordinate_frame == MAV_FRAME_LOCAL_NED:
                 c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
                 vx, vy = c * vx + s * vy, -s * vx + c * vy
             elif msg.coordinate_frame not in BODY_FRAMES:
                 self._ignore("setpoint in an unsupported frame")
-                return
+                return False
         if not (math.isfinite(vx) and math.isfinite(vy)):
             self._ignore("non-finite setpoint")
-            return
+            return False
         if max(abs(vx), abs(vy)) > vmax:
             self._ignore("setpoint beyond max_speed_m_s (clipped)")
         self.core.set_setpoint(vx, vy)
         self.last_setpoint_time = now_s
+        return True

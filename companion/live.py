@@ -1,54 +1,39 @@
 """The live companion: ``python -m companion run --connect URL [--arm] [--setpoint VX,VY]``.
 
-It wraps the same ``CompanionCore`` (through ``companion.inbound.MessageRouter``) and the same
-``companion.outbound`` messages the in-process scenarios use, so a lockstep run over UDP
-reproduces them frame for frame. What only a live loop needs lives here:
+The socket, the clock and the I/O around one ``companion.session.Session``, which holds what the
+companion decides (engagement and take-over, setpoints and their decay, one control step per new
+flow frame through ``CompanionCore``, staleness and the hold causes, what is said): this module
+reads the link, hands each message to the session with its time, runs the session's watchdog
+each pass of its loop, and sends what the session returns. The session's messages are the same
+``companion.outbound`` messages the in-process scenarios send, so a lockstep run over UDP
+reproduces them frame for frame. What is the loop's own:
 
 - the sensor profile: ``--profile``, or detected from the vehicle's first messages before
   taking control (``profiles.LiveProfileDetector``: the OPTICAL_FLOW ``time_usec`` unit against
   the vehicle's other clocks, OPTICAL_FLOW_RAD, the flow content), printed with the reason;
 - the link: wait for the vehicle's HEARTBEAT, ask for the streams with SET_MESSAGE_INTERVAL,
   send our HEARTBEAT (component 191) at 1 Hz, and with ``--arm`` switch to GUIDED_NOGPS and arm
-  (without it, wait for the pilot; we take control only while armed in GUIDED_NOGPS, with the
-  PI integrator reset at each takeover and yaw held at its takeover value);
-- one control step per *new* flow frame (a frame whose time does not advance is a duplicate and
-  is dropped; one more than 1 s older than the last is a vehicle reboot and restarts the clock);
-  a stall is not replayed: what waits on the link is read before it is handled, and a frame
-  more than ``MAX_FRAME_AGE_FRAMES`` frame periods old by the link's clock mapping
-  (``link.ClockMapping``: the newest sample heard, and the kernel's arrival stamps on UDP) is
-  dropped and counted, never stepped; when the loop itself stood still for more than
-  ``flow_timeout_s`` (the process stopped or starved) the hold is "companion stalled" and only
-  the newest frame waiting is flown, with the integrator as it was; the number dropped is said;
-  each step publishes POSITION_TARGET_LOCAL_NED and VISION_SPEED_ESTIMATE (not while holding)
-  and sends SET_ATTITUDE_TARGET (thrust 0.5) last, stamped with the flow frame's time;
-- setpoints: ``--setpoint VX,VY`` (constant), or a GCS's SET_POSITION_TARGET_LOCAL_NED to
-  component 191, or MANUAL_CONTROL sticks (full stick = ``companion.max_speed_m_s``). A GCS or
-  stick setpoint is held for ``companion.setpoint_timeout_s`` after its last refresh, then ramps
-  linearly back to the constant setpoint (zero without one) over another
-  ``setpoint_timeout_s`` (``decayed_setpoint``); ages are wall-clock, as they are link events;
-- failsafes, each commanding level attitude (hold) with a STATUSTEXT (WARNING) naming the cause
-  once per episode and "flowhold: resumed" (NOTICE) when good again: per frame the core's causes
-  (flow quality 0, spike, gyro missing or saturated, range missing, stale or outside the sensor's
-  limits); by vehicle time, flow stale (the gyro's clock runs on but no new flow frame for
-  ``companion.flow_timeout_s``); by wall clock, no flow frame at all for ``flow_timeout_s``
-  (flow stale, or link lost when nothing comes from the vehicle), when level commands keep
-  going out at the frame rate; across frames (``core.Plausibility``), a velocity estimate that jumps
-  further than the vehicle can accelerate (a one-frame outlier: held, not flown), and flow or
-  gyro values stuck while the vehicle turns;
-- announcements: taking and releasing control (NOTICE), holds (WARNING), a hold episode lasting
-  over ``LONG_HOLD_S`` once more at CRITICAL (the pilot's cue: level is not hover), the GCS's
-  setpoints stopping, backlog frames dropped (WARNING) and "resumed" (NOTICE) go to the ground
-  station as STATUSTEXT from component 191, rate limited (``TextLimiter``) so a flapping cause
-  cannot flood the link, and to the console;
-- no command leaves that is not finite and inside the tilt limit; a message that cannot be
-  handled is counted and dropped, never fatal; on UDP each datagram is parsed on its own;
-  commands to the companion are refused with a COMMAND_ACK; what is refused is counted in the
-  status line (``rejected N``) and the exit summary.
+  (without it, wait for the pilot; the session takes control only while armed in GUIDED_NOGPS);
+- reading: what waits on the link is read before it is handled, each message stamped with its
+  arrival (the kernel's stamp on UDP) and shown to the session's clock mapping in that order, so
+  that a frame of a backlog is aged against the newer samples behind it; when the loop itself
+  stood still for more than ``flow_timeout_s`` (the process stopped or starved) the session is
+  told (``Session.on_stall``: the hold is "companion stalled") and only the newest flow frame
+  waiting is flown, every other one handed in as ``behind`` (dropped);
+- sending: each control step as POSITION_TARGET_LOCAL_NED, VISION_SPEED_ESTIMATE (not while
+  holding) and SET_ATTITUDE_TARGET (thrust 0.5) last, in one datagram, stamped with the flow
+  frame's time; the announcements as STATUSTEXT from component 191, rate limited
+  (``TextLimiter``) so a flapping cause cannot flood the link, and on the console; the
+  ``--tlog`` recording (``RecordStamps``);
+- a message that cannot be handled is counted and dropped, never fatal; on UDP each datagram is
+  parsed on its own; commands to the companion are refused with a COMMAND_ACK; what is refused is
+  counted in the status line (``rejected N``) and the exit summary.
+
+The failsafes and announcements themselves are described in ``companion.session``.
 """
 
 from __future__ import annotations
 
-import enum
 import math
 import signal
 import sys
@@ -60,23 +45,27 @@ from typing import Any
 
 from companion import link, outbound
 from companion.config import Config, load_config
-from companion.controller import PiState
-from companion.core import CROSS_FRAME_CAUSES, CompanionCore, HoldCause, StepOutput
+from companion.core import FrameOrder as FrameOrder  # (re-exported: companion.live.FrameOrder)
+from companion.core import HoldCause, StepOutput
+from companion.core import classify_frame as classify_frame
 from companion.errors import LinkError, UsageError, check_output, output_error
-from companion.inbound import MessageRouter, gyro_time_s, scalar_flow
 from companion.mavlink_ids import GUIDED_NOGPS
-from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, LiveProfileDetector, Profile
-from companion.setpoint import decayed_setpoint
+from companion.profiles import FLOW_MESSAGE, LiveProfileDetector, Profile
+from companion.session import AGE_SLACK_S as AGE_SLACK_S
+from companion.session import BACKLOG_SAY_FRAMES as BACKLOG_SAY_FRAMES
+from companion.session import HEARTBEAT_TIMEOUT_S as HEARTBEAT_TIMEOUT_S
+from companion.session import LONG_HOLD_S as LONG_HOLD_S
+from companion.session import MAX_FRAME_AGE_FRAMES as MAX_FRAME_AGE_FRAMES
+from companion.session import REBOOT_JUMP_S as REBOOT_JUMP_S
+from companion.session import Command, Estimate, HoldMonitor, Out, Say, Session, vehicle_time_s
+from companion.session import safe_attitude as safe_attitude
+from companion.setpoint import decayed_setpoint as decayed_setpoint
 from companion.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S, TlogWriter
 
 mav = link.mav
 
 #: seconds to wait for the vehicle's first HEARTBEAT before giving up
 CONNECT_TIMEOUT_S = 30.0
-#: a vehicle HEARTBEAT older than this (wall clock, s) means the link is lost
-HEARTBEAT_TIMEOUT_S = 3.0
-#: a flow frame more than this much older than the last one is a vehicle reboot (s)
-REBOOT_JUMP_S = 1.0
 COMMAND_RETRY_S = 1.0
 #: wall-clock seconds after the vehicle is heard before "profile still unknown" is said
 PROFILE_WARN_S = 5.0
@@ -87,19 +76,9 @@ TEXT_BURST = 20
 TEXT_RATE_HZ = 5.0
 #: the characters a STATUSTEXT carries
 STATUSTEXT_LEN = 50
-#: a flow frame older than this many frame periods by the link's clock mapping (``link.ClockMapping``)
-#: when its turn comes is dropped and counted, never stepped: a stall is not replayed (issue 18)
-MAX_FRAME_AGE_FRAMES = 2.0
-#: the vehicle's time resolution (time_usec), s: an age at the limit to within it is not over it
-AGE_SLACK_S = 1e-6
-#: a run of dropped frames at least this long (frame periods) is said (STATUSTEXT and console)
-#: even without a stall of the companion; shorter ones are only counted
-BACKLOG_SAY_FRAMES = 5
 #: the most messages read from the link in one go: what is waiting is read before any of it is
 #: handled, so that a frame is aged against the newer samples already behind it
 READ_AHEAD_MAX = 2000
-#: a hold lasting longer than this (wall clock, s) is said once more, at CRITICAL: the pilot's cue
-LONG_HOLD_S = 1.0
 #: the attribute a message read from the link carries: its arrival on the companion's clock (s)
 ARRIVAL_ATTR = "flowhold_arrival_s"
 COMMAND_TRIES = 5
@@ -125,79 +104,6 @@ def parse_setpoint(text: str) -> tuple[float, float]:
     if not (math.isfinite(vx) and math.isfinite(vy)):
         raise UsageError(f"--setpoint: values must be finite, got {text!r}")
     return vx, vy
-
-
-class FrameOrder(enum.Enum):
-    NEW = "new"
-    DUPLICATE = "duplicate or out of order"
-    REBOOT = "vehicle reboot"
-
-
-def classify_frame(prev_time_s: float | None, time_s: float, reboot_jump_s: float = REBOOT_JUMP_S) -> FrameOrder:
-    """Is a flow frame at ``time_s`` new, a repeat, or the first after a reboot?"""
-    if prev_time_s is None or time_s > prev_time_s:
-        return FrameOrder.NEW
-    if time_s < prev_time_s - reboot_jump_s:
-        return FrameOrder.REBOOT
-    return FrameOrder.DUPLICATE
-
-
-def safe_attitude(roll_rad: float, pitch_rad: float, limit_rad: float) -> tuple[float, float, bool]:
-    """The command that may leave: finite and inside +-limit. Returns (roll, pitch, was_ok);
-    a non-finite command becomes level."""
-    if not (math.isfinite(roll_rad) and math.isfinite(pitch_rad)):
-        return 0.0, 0.0, False
-    r = min(max(roll_rad, -limit_rad), limit_rad)
-    p = min(max(pitch_rad, -limit_rad), limit_rad)
-    return r, p, (r, p) == (roll_rad, pitch_rad)
-
-
-class HoldMonitor:
-    """Turns the hold cause of each step into STATUSTEXTs: one per change of cause; and tells
-    when a hold episode (from its first cause to "resumed", whatever the causes between) has
-    lasted long enough to be said again (``long_hold``). Times passed in (s)."""
-
-    def __init__(self) -> None:
-        self.cause: HoldCause = HoldCause.NONE
-        self.episodes = 0
-        #: when the current hold episode began (None while not holding, or when not told)
-        self.since_s: float | None = None
-        self._long_said = False
-
-    def update(self, cause: HoldCause, now_s: float | None = None) -> tuple[str, int] | None:
-        """(text, severity) to send, or None when nothing changed. ``now_s``: when the cause
-        began (a new episode starts then)."""
-        if cause == self.cause:
-            return None
-        was_holding = self.cause is not HoldCause.NONE
-        self.cause = cause
-        if cause is HoldCause.NONE:
-            self.since_s = None
-            return "flowhold: resumed", mav.MAV_SEVERITY_NOTICE
-        if not was_holding:
-            self.episodes += 1
-            self.since_s = now_s
-            self._long_said = False
-        return f"flowhold: HOLD {cause.value}", mav.MAV_SEVERITY_WARNING
-
-    def long_hold(self, now_s: float, after_s: float) -> bool:
-        """True once per episode, when the hold has lasted more than ``after_s``."""
-        if self.cause is HoldCause.NONE or self.since_s is None or self._long_said \
-                or now_s - self.since_s <= after_s:
-            return False
-        self._long_said = True
-        return True
-
-
-def vehicle_time_s(msg: Any) -> float | None:
-    """The vehicle's boot time a message carries (s): ``time_boot_ms``, or a gyro's ``time_usec``;
-    None for messages without one (and for the flow, whose ``time_usec`` unit depends on the profile)."""
-    ms = getattr(msg, "time_boot_ms", None)
-    if ms is not None:
-        return float(ms) * 1e-3
-    if msg.get_type() in GYRO_MESSAGES:
-        return gyro_time_s(msg)
-    return None
 
 
 class RecordStamps:
@@ -413,9 +319,9 @@ class Commander:
 # ---------------------------------------------------------------------------------------------
 # The loop
 
-
 class LiveCompanion:
-    """The companion's live loop over one pymavlink connection (see the module docstring)."""
+    """The companion's live loop over one pymavlink connection (see the module docstring): the
+    socket, the clock and the I/O around one ``session.Session``, which decides what is sent."""
 
     def __init__(self, cfg: Config, profile: Profile | None, conn: Any, *, url: str = "", arm: bool = False,
                  setpoint_m_s: tuple[float, float] | None = None, tlog: str | None = None,
@@ -426,7 +332,11 @@ class LiveCompanion:
         #: None: detect it from the vehicle's messages (``LiveProfileDetector``) before taking
         #: control; until then the core runs on a provisional profile and steps no flow frame
         self.detector = LiveProfileDetector() if profile is None else None
-        self.profile = profile if profile is not None else Profile.PAPER
+        self.session = Session(cfg, profile, vehicle_sysid=vehicle_sysid, setpoint_m_s=setpoint_m_s)
+        self.core = self.session.core
+        self.router = self.session.router
+        #: what was counted, the session's and the link's (one Counter, shared)
+        self.counters = self.session.counters
         self.conn = conn
         self.url = url
         self.arm = arm
@@ -434,60 +344,19 @@ class LiveCompanion:
         self.wall = wall
         self.quiet = quiet
         self.out = out or (lambda text: print(text, flush=True))
-        self.core = CompanionCore(cfg, self.profile)
-        self.router = MessageRouter(self.core, self.profile, vehicle_sysid=vehicle_sysid)
         self.want_sysid = vehicle_sysid
         self.vehicle_compid = 1
-        self.base_setpoint = setpoint_m_s or (0.0, 0.0)
-        self.gcs_setpoint: tuple[float, float] | None = None
-        self.gcs_setpoint_wall = 0.0
-        self._ramp_said = False  # "GCS setpoints stopped" said for the current setpoint
         self.T = cfg.flow_sensor.frame_period_s
-        self.tilt_limit = cfg.controller.tilt_limit_rad
-        #: the vehicle's clock seen from ours: how old each frame is when its turn comes
-        self.clockmap = link.ClockMapping(jump_s=REBOOT_JUMP_S)
-        self.max_frame_age_s = MAX_FRAME_AGE_FRAMES * self.T
         self.commander = Commander()
-        self.monitor = HoldMonitor()
         self.texts = TextLimiter()
-        self.counters: Counter[str] = Counter()
         self.tlog = RecordStamps(TlogWriter(tlog), wall, clock) if tlog else None
         self.tlog_path = tlog
-        # vehicle state
-        self.armed = False
-        self.mode = -1
-        self.in_control = False
-        self.yaw_hold = 0.0
-        self.control_start: float | None = None
-        # sensor clocks (vehicle time, s) and wall times of arrival
-        self.last_flow_time_s: float | None = None
-        self.flow_ref_s: float | None = None  # vehicle time from which flow staleness is measured
-        self.last_gyro_time_s: float | None = None
-        self.vehicle_time_s: float | None = None  # time of the latest gyro or flow sample
-        self.last_hold_stamp_s: float | None = None
-        self.last_flow_wall = -math.inf
-        self.last_vehicle_wall = -math.inf
-        self.last_heartbeat_wall = -math.inf
-        self.last_cmd_wall = -math.inf
-        #: wall time of the last command paced by the vehicle's clock (a step, or a vehicle-time hold)
-        self.last_vehicle_cmd_wall = -math.inf
-        self.last_step: StepOutput | None = None
-        self.last_held = False  # the last step held
-        self.last_cmd_rad = (0.0, 0.0)
         self._next_heartbeat = -math.inf
         self._next_status = -math.inf
-        self._next_wall_hold = -math.inf
         self._loop_wall: float | None = None  # when the main loop last ran (its gaps are stalls)
-        #: since the last frame stepped: the longest stall of the loop (s), and the frames dropped
-        #: as too old (how many, and the oldest's age, s)
-        self._stall_gap_s = 0.0
-        self._drops = 0
-        self._drop_oldest_s = 0.0
         #: while handling a stall's backlog: the one flow frame to resume from (the newest waiting)
         self._catching_up = False
         self._resume_frame: Any | None = None
-        self._flow_times: deque[float] = deque(maxlen=50)
-        self._link_lost_reported = False
         self._vehicle_heard_wall: float | None = None
         self._profile_warned = False
         self._requested_flow: set[str] = set()
@@ -498,6 +367,44 @@ class LiveCompanion:
         self._pending: deque[Any] = deque()
         #: set by a signal handler (Ctrl-C, SIGTERM): the loop ends between two messages
         self.stop_requested = False
+
+    # -- the session's state, as the loop and its callers read it --------------------------
+
+    @property
+    def profile(self) -> Profile:
+        return self.session.profile
+
+    @property
+    def profile_known(self) -> bool:
+        return self.session.profile_known
+
+    @property
+    def in_control(self) -> bool:
+        return self.session.in_control
+
+    @property
+    def armed(self) -> bool:
+        return self.session.armed
+
+    @property
+    def mode(self) -> int:
+        return self.session.mode
+
+    @property
+    def control_start(self) -> float | None:
+        return self.session.control_start
+
+    @property
+    def last_step(self) -> StepOutput | None:
+        return self.session.last_step
+
+    @property
+    def last_cmd_rad(self) -> tuple[float, float]:
+        return self.session.last_cmd_rad
+
+    @property
+    def monitor(self) -> HoldMonitor:
+        return self.session.monitor
 
     # -- sending -------------------------------------------------------------------------
 
@@ -519,6 +426,31 @@ class LiveCompanion:
         if self.tlog is not None:
             for buf in bufs:
                 self.tlog.write(buf)
+
+    def _emit(self, outs: list[Out]) -> None:
+        """Send what the session asked for, in its order."""
+        for o in outs:
+            if isinstance(o, Command):
+                self._send_step(o)
+            elif isinstance(o, Estimate):
+                self._send(outbound.vision_speed(self.conn.mav, int(round(o.time_s * 1e6)), o.vx_m_s, o.vy_m_s,
+                                                 o.vx_var_m2_s2, o.vy_var_m2_s2))
+            elif isinstance(o, Say):
+                self._statustext(o.text, o.severity, console=o.console)
+            else:
+                self.out(o.text)
+
+    def _send_step(self, c: Command) -> None:
+        """POSITION_TARGET_LOCAL_NED, VISION_SPEED_ESTIMATE (with an estimate), then SET_ATTITUDE_TARGET,
+        in one datagram, in MAVLink's units."""
+        ms = int(round(c.time_s * 1e3)) if math.isfinite(c.time_s) else 0
+        enc = self.conn.mav
+        msgs = [outbound.position_target(enc, ms, c.vx_set_m_s, c.vy_set_m_s)]
+        if c.estimate is not None:
+            msgs.append(outbound.vision_speed(enc, int(round(c.time_s * 1e6)), *c.estimate))
+        msgs.append(outbound.set_attitude_target(enc, ms, self.router.vehicle_sysid or 1, c.roll_rad, c.pitch_rad,
+                                                 c.yaw_rad, self.vehicle_compid))
+        self._send(*msgs)
 
     def _statustext(self, text: str, severity: int, console: str | None = None) -> None:
         """Say ``text`` to the ground station (STATUSTEXT from component 191, rate limited by
@@ -591,10 +523,6 @@ class LiveCompanion:
         self.commander.add(f"stream {name} at {1 / self.T:g} Hz", mav.MAV_CMD_SET_MESSAGE_INTERVAL, mid,
                            round(self.T * 1e6), required=False)
 
-    @property
-    def profile_known(self) -> bool:
-        return self.detector is None or self.detector.result is not None
-
     def _detect(self, msg: Any) -> None:
         """Feed the profile detector a vehicle message; bind the profile once it can tell."""
         assert self.detector is not None
@@ -602,9 +530,7 @@ class LiveCompanion:
         if found is None:
             return
         profile, why = found
-        self.profile = profile
-        self.router.profile = profile
-        self.core.set_profile(profile)
+        self.session.set_profile(profile)
         self.out(f"flowhold: sensor profile {profile.value} (detected: {why})")
         if FLOW_MESSAGE[profile] not in self._requested_flow:
             self._request_stream(FLOW_MESSAGE[profile])
@@ -648,18 +574,12 @@ class LiveCompanion:
             n += max(1, len(batch))
 
     def _observe(self, msg: Any, arrival_s: float) -> None:
-        """Show the clock mapping a vehicle sample's time (its own clock: ``time_boot_ms``, a gyro's
-        ``time_usec``, the flow frame's time in the profile's unit)."""
+        """Show the session's clock mapping a message as it arrives (``Session.observe``)."""
         try:
-            if not self._from_vehicle(msg):
-                return
-            t = vehicle_time_s(msg)
-            if t is None and self.profile_known and msg.get_type() == FLOW_MESSAGE[self.profile]:
-                t = scalar_flow(msg, self.profile, self.cfg.flow_sensor.q_rad_per_count).time_s
-            if t is not None:
-                self.clockmap.observe(float(t), arrival_s)
-        except Exception:  # noqa: BLE001 - a time that cannot be read is no evidence (the handler will say)
+            vehicle = self._from_vehicle(msg)
+        except Exception:  # noqa: BLE001 - a message without a sender is no evidence (the handler will say)
             return
+        self.session.observe(msg, arrival_s, vehicle=vehicle)
 
     def _recv(self) -> Any | None:
         try:
@@ -686,62 +606,28 @@ class LiveCompanion:
         return msg.get_srcSystem() == self.router.vehicle_sysid and msg.get_srcComponent() == self.vehicle_compid
 
     def _on_message(self, msg: Any, now: float) -> None:
+        """One message from the link: the profile detector and the commands are the loop's, the
+        rest the session's (``Session.on_message``), whose answer is sent."""
         mtype = msg.get_type()
         vehicle = self._from_vehicle(msg)
         arrival = getattr(msg, ARRIVAL_ATTR, None)
         if arrival is None:  # handed in directly, not read by ``_read_ahead``: it arrives now
             arrival = now
             self._observe(msg, now)
-        if vehicle:
-            self.last_vehicle_wall = max(self.last_vehicle_wall, min(arrival, now))
-            if not self.profile_known:
-                self._detect(msg)
-        if mtype == "STATUSTEXT":
-            if vehicle:  # a simulator's clock notice: the rate of the vehicle's clock (lockstep: 0)
-                self.clockmap.set_clock_text(str(msg.text))
-        elif mtype == "HEARTBEAT":
-            if vehicle:
-                self.last_heartbeat_wall = now
-                self.armed = link.heartbeat_armed(msg)
-                self.mode = msg.custom_mode
-        elif mtype == "COMMAND_ACK":
+        if vehicle and not self.profile_known:
+            self._detect(msg)
+        if mtype == "COMMAND_ACK":
             if vehicle and msg.target_component in (0, outbound.COMPANION_COMPONENT):
                 done = self.commander.on_ack(msg.command, msg.result)
                 if done is not None and msg.result == mav.MAV_RESULT_ACCEPTED:
                     if done.command == mav.MAV_CMD_DO_SET_MODE:
-                        self.mode = GUIDED_NOGPS
+                        self._emit(self.session.on_vehicle_state(now, mode=GUIDED_NOGPS))
                     elif done.command == mav.MAV_CMD_COMPONENT_ARM_DISARM:
-                        self.armed = True
+                        self._emit(self.session.on_vehicle_state(now, armed=True))
         elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
             self._on_command(msg)
-        elif mtype in ("SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL"):
-            self.router.last_setpoint_time = None
-            self.router.handle(msg, now)
-            if self.router.last_setpoint_time is not None:
-                self.gcs_setpoint = self.core.setpoint_m_s
-                self.gcs_setpoint_wall = now
-                self._ramp_said = False
-        elif mtype in ("OPTICAL_FLOW", "OPTICAL_FLOW_RAD") and not self.profile_known:
-            if vehicle:
-                self.counters["flow frames before the profile was known"] += 1
-            else:
-                self.counters["sensor data from another system"] += 1
-        elif mtype == FLOW_MESSAGE[self.profile]:
-            if vehicle:
-                self._on_flow(msg, now)
-            else:
-                self.counters["sensor data from another system"] += 1
-        elif mtype in GYRO_MESSAGES:
-            if vehicle:
-                self.router.handle(msg, now)
-                self._on_gyro_time(gyro_time_s(msg), now)
-            else:
-                self.counters["sensor data from another system"] += 1
-        elif vehicle:
-            self.router.handle(msg, now)  # DISTANCE_SENSOR, ATTITUDE (yaw, angles and rates)
-        elif mtype in ("DISTANCE_SENSOR", "ATTITUDE"):
-            self.counters["sensor data from another system"] += 1
-        self._update_control(now)
+        behind = self._catching_up and msg is not self._resume_frame  # a stall's backlog: only the newest flies
+        self._emit(self.session.on_message(msg, now, vehicle=vehicle, arrival_s=arrival, behind=behind))
 
     def _on_command(self, msg: Any) -> None:
         """A command addressed to the companion: none is supported, so it is refused with a
@@ -753,153 +639,6 @@ class LiveCompanion:
         self._send(self.conn.mav.command_ack_encode(msg.command, mav.MAV_RESULT_UNSUPPORTED, 0, 0,
                                                     msg.get_srcSystem(), msg.get_srcComponent()))
 
-    def _update_control(self, now: float) -> None:
-        want = self.armed and self.mode == GUIDED_NOGPS and self.profile_known
-        if want and not self.in_control:
-            self.in_control = True
-            self.core.pi.state = PiState()
-            self.yaw_hold = self.router.yaw_rad
-            self.control_start = now if self.control_start is None else self.control_start
-            self.flow_ref_s = self.last_flow_time_s
-            self.last_flow_wall = max(self.last_flow_wall, now)  # the flow timeout runs from the takeover
-            self._statustext("flowhold: in control (GUIDED_NOGPS)", mav.MAV_SEVERITY_NOTICE,
-                             console="flowhold: in control (armed, GUIDED_NOGPS)")
-            if self.last_flow_time_s is not None:  # take over from level at the latest frame
-                sp = self._effective_setpoint(now)
-                self._command(self.last_flow_time_s, 0.0, 0.0, sp[0], sp[1], now, estimate=None)
-        elif not want and self.in_control:
-            self.in_control = False
-            why = link.mode_name(self.mode) if self.armed else "disarmed"
-            self._statustext(f"flowhold: released control ({why})", mav.MAV_SEVERITY_NOTICE,
-                             console=f"flowhold: released control ({'armed' if self.armed else 'disarmed'}, "
-                                     f"{link.mode_name(self.mode)})")
-
-    def _effective_setpoint(self, now: float) -> tuple[float, float]:
-        if self.gcs_setpoint is None:
-            return self.base_setpoint
-        return decayed_setpoint(self.gcs_setpoint, self.base_setpoint, now - self.gcs_setpoint_wall,
-                                self.cfg.companion.setpoint_timeout_s)
-
-    def _on_flow(self, msg: Any, now: float) -> None:
-        f = scalar_flow(msg, self.profile, self.cfg.flow_sensor.q_rad_per_count)
-        t = f.time_s
-        if math.isfinite(t):
-            order = classify_frame(self.last_flow_time_s, t)
-            if order is FrameOrder.DUPLICATE:
-                self.counters["flow frames repeated or out of order"] += 1
-                return
-            if order is FrameOrder.REBOOT:
-                self.counters["vehicle reboots"] += 1
-                self.core.plausible.reset()
-                self.out(f"flowhold: the vehicle's clock restarted ({self.last_flow_time_s:.3f} s -> {t:.3f} s)")
-        age = self.clockmap.age_s(t, now)
-        behind = self._catching_up and msg is not self._resume_frame  # a stall's backlog: only the newest flies
-        if (behind or age > self.max_frame_age_s + AGE_SLACK_S) and not self.core.is_repeat(f):
-            self._drop_frame(t, age)  # a stall is not replayed: never stepped, never commanded
-            return
-        self.core.set_setpoint(*self._effective_setpoint(now))
-        out = self.core.on_flow(f)  # the frame parsed above (only the vehicle's flow comes here)
-        if out.repeat:  # the same flow sample again (ArduPilot streams faster than the sensor)
-            self.counters["flow samples repeated"] += 1
-            return
-        if math.isfinite(t):
-            self.last_flow_time_s = t
-            self.flow_ref_s = t
-            self.vehicle_time_s = t
-        self.last_flow_wall = now
-        self._flow_times.append(now)
-        self.counters["steps"] += 1
-        if out.hold_cause in CROSS_FRAME_CAUSES:
-            self.counters[f"holds: {out.hold_cause.value}"] += 1
-        self.last_step = out
-        self.last_held = out.holding
-        if not self.in_control:
-            self.core.pi.state = PiState()  # the pilot flies: no integration
-            if not out.holding:
-                self._send(outbound.vision_speed(self.conn.mav, int(round(out.time_s * 1e6)), out.vx_m_s,
-                                                 out.vy_m_s, out.vx_var_m2_s2, out.vy_var_m2_s2))
-            return
-        self.last_vehicle_cmd_wall = now
-        self._command(out.time_s, out.roll_cmd_rad, out.pitch_cmd_rad, out.vx_set_m_s, out.vy_set_m_s, now,
-                      estimate=None if self.last_held else (out.vx_m_s, out.vy_m_s, out.vx_var_m2_s2,
-                                                            out.vy_var_m2_s2))
-        self._say_backlog()
-        self._report(out.hold_cause, now)
-
-    def _drop_frame(self, t: float, age_s: float) -> None:
-        """A flow frame too old to fly on: counted, and its time noted (the flow is not stale,
-        the frame is late), but not stepped: the integrator is not charged for a stall."""
-        self.counters["flow frames dropped (too old)"] += 1
-        self._drops += 1
-        self._drop_oldest_s = max(self._drop_oldest_s, age_s)
-        if math.isfinite(t):
-            self.last_flow_time_s = t
-            self.flow_ref_s = t
-            self.vehicle_time_s = t
-
-    def _say_backlog(self) -> None:
-        """At the first frame stepped after a stall or a run of dropped frames: say how many were
-        dropped (STATUSTEXT WARNING and console); a few late frames are only counted."""
-        n, oldest, gap = self._drops, self._drop_oldest_s, self._stall_gap_s
-        self._drops, self._drop_oldest_s, self._stall_gap_s = 0, 0.0, 0.0
-        if not gap and n < BACKLOG_SAY_FRAMES:
-            return
-        resumed = "resumed from the newest frame, integrator as it was"
-        if gap:
-            console = (f"flowhold: companion stalled for {gap:.2f} s (this process did not run): dropped {n} "
-                       f"backlog frames (the oldest {oldest:.2f} s old); {resumed}")
-        else:
-            console = (f"flowhold: dropped {n} flow frames older than {self.max_frame_age_s * 1e3:.0f} ms "
-                       f"(a backlog on the link, the oldest {oldest:.2f} s old); {resumed}")
-        self._statustext(f"flowhold: backlog dropped: {n} frames ({oldest:.1f} s)", mav.MAV_SEVERITY_WARNING,
-                         console=console)
-
-    def _on_gyro_time(self, t_s: float, now: float) -> None:
-        """Flow staleness on the vehicle's own clock: the gyro's time runs on, the flow's does not."""
-        if self.last_gyro_time_s is not None and t_s < self.last_gyro_time_s - REBOOT_JUMP_S:
-            self.flow_ref_s = None  # reboot (or a bogus time): measure again from the next sample
-        self.last_gyro_time_s = t_s
-        self.vehicle_time_s = t_s
-        if not self.in_control or self.clockmap.age_s(t_s, now) > self.max_frame_age_s + AGE_SLACK_S:
-            return  # (a sample of a backlog commands nothing)
-        if self.flow_ref_s is None or t_s < self.flow_ref_s - REBOOT_JUMP_S:
-            self.flow_ref_s = t_s
-        # one level command per frame period of vehicle time (the gyro may stream faster than the flow)
-        if t_s - self.flow_ref_s > self.cfg.companion.flow_timeout_s + 1e-9 and (
-                self.last_hold_stamp_s is None or not 0.0 <= t_s - self.last_hold_stamp_s < 0.999 * self.T):
-            self.last_hold_stamp_s = t_s
-            self.last_vehicle_cmd_wall = now
-            self.counters["holds: flow stale (vehicle time)"] += 1
-            sp = self._effective_setpoint(now)
-            self._command(t_s, 0.0, 0.0, sp[0], sp[1], now, estimate=None)
-            self._report(HoldCause.FLOW_STALE, now)
-
-    def _command(self, time_s: float, roll: float, pitch: float, vx_set: float, vy_set: float, now: float, *,
-                 estimate: tuple[float, float, float, float] | None) -> None:
-        """Publish the step: POSITION_TARGET_LOCAL_NED, VISION_SPEED_ESTIMATE, then SET_ATTITUDE_TARGET.
-        ``estimate``: (vx, vy, var_x, var_y), the variances NaN when the estimator gives none."""
-        roll, pitch, ok = safe_attitude(roll, pitch, self.tilt_limit)
-        if not ok:
-            self.counters["commands clipped or levelled"] += 1
-        ms = int(round(time_s * 1e3)) if math.isfinite(time_s) else 0
-        enc = self.conn.mav
-        if not (math.isfinite(vx_set) and math.isfinite(vy_set)):
-            vx_set = vy_set = 0.0
-        msgs = [outbound.position_target(enc, ms, vx_set, vy_set)]
-        if estimate is not None and all(math.isfinite(v) for v in estimate[:2]):
-            msgs.append(outbound.vision_speed(enc, int(round(time_s * 1e6)), *estimate))
-        msgs.append(outbound.set_attitude_target(enc, ms, self.router.vehicle_sysid or 1, roll, pitch,
-                                                 self.yaw_hold, self.vehicle_compid))
-        self._send(*msgs)
-        self.last_cmd_wall = now
-        self.last_cmd_rad = (roll, pitch)
-        self.counters["commands"] += 1
-
-    def _report(self, cause: HoldCause, now: float) -> None:
-        said = self.monitor.update(cause, now)
-        if said is not None:
-            self._statustext(*said)
-
     # -- periodic ------------------------------------------------------------------------
 
     def _heartbeat(self, now: float) -> None:
@@ -908,63 +647,23 @@ class LiveCompanion:
             self._send(outbound.heartbeat(self.conn.mav))
 
     def _watchdog(self, now: float) -> None:
-        """Wall-clock failsafe: no flow frame for flow_timeout_s -> level commands at the frame rate."""
+        """The profile still unknown after ``PROFILE_WARN_S``; then the session's watchdog
+        (``Session.tick``: link lost, the GCS's setpoints stopping, no flow frame for flow_timeout_s)."""
         if not self.profile_known and not self._profile_warned and self._vehicle_heard_wall is not None \
                 and now - self._vehicle_heard_wall > PROFILE_WARN_S:
             self._profile_warned = True
             assert self.detector is not None
             self.out(f"flowhold: warning: sensor profile still unknown after {PROFILE_WARN_S:g} s "
                      f"({self.detector.n_flow} OPTICAL_FLOW, none telling); not taking control: give --profile")
-        lost = now - self.last_heartbeat_wall > HEARTBEAT_TIMEOUT_S
-        if lost != self._link_lost_reported:
-            self._link_lost_reported = lost
-            self.out("flowhold: link lost (no vehicle HEARTBEAT)" if lost else "flowhold: link back")
-        if not self.in_control:
-            return
-        sp_timeout = self.cfg.companion.setpoint_timeout_s
-        if self.gcs_setpoint is not None and not self._ramp_said and now - self.gcs_setpoint_wall > sp_timeout:
-            self._ramp_said = True  # issue 18: say it when the GCS's setpoints stop and the ramp begins
-            self._statustext("flowhold: GCS setpoints stopped, ramp to hold", mav.MAV_SEVERITY_WARNING,
-                             console=f"flowhold: GCS setpoints stopped for {sp_timeout:g} s: ramping to "
-                                     f"{self.base_setpoint[0]:+.2f} {self.base_setpoint[1]:+.2f} m/s over "
-                                     f"{sp_timeout:g} s")
-        timeout = self.cfg.companion.flow_timeout_s
-        if now - self.last_flow_wall <= timeout:
-            self._next_wall_hold = now + self.T
-        elif now >= self._next_wall_hold and now - self.last_cmd_wall >= 0.5 * self.T \
-                and now - self.last_vehicle_cmd_wall > 1.5 * self.T:
-            # the wall clock commands only while the vehicle's clock is silent: one clock at a time,
-            # one level command per frame period (issue 18: both fired, ~100 Hz)
-            self._next_wall_hold = max(self._next_wall_hold + self.T, now - self.T)  # frame rate, no burst
-            if now - self.last_vehicle_wall > timeout:
-                cause = HoldCause.LINK
-            elif self._stall_gap_s:  # the companion itself stood still, and no fresh frame since
-                cause = HoldCause.COMPANION_STALLED
-            elif self._drops:  # frames come, but too old to fly on
-                cause = HoldCause.BACKLOG
-            else:
-                cause = HoldCause.FLOW_STALE
-            self.counters[f"holds: {cause.value} (wall clock)"] += 1
-            # stamped with the vehicle's latest sensor time: a lockstep vehicle waiting on that frame takes
-            # it, one that has moved on (its frames arrive whole, flow with gyro) ignores it as stale
-            stamp = self.vehicle_time_s if self.vehicle_time_s is not None else 0.0
-            sp = self._effective_setpoint(now)
-            self._command(stamp, 0.0, 0.0, sp[0], sp[1], now, estimate=None)
-            self._report(cause, now)
-        if self.monitor.long_hold(now, LONG_HOLD_S):  # issue 18: the pilot's cue
-            self._statustext(f"flowhold: HOLD for {LONG_HOLD_S:g} s, drifting: switch mode", mav.MAV_SEVERITY_CRITICAL,
-                             console=f"flowhold: holding level for {LONG_HOLD_S:.1f} s ({self.monitor.cause.value}): "
-                                     "level is not hover, the vehicle drifts with the wind: switch mode "
-                                     "(LAND, ALT_HOLD)")
+        self._emit(self.session.tick(now))
 
     def status_line(self, now: float) -> str:
-        s = self.last_step
-        sp = self._effective_setpoint(now)
-        rate = 0.0
-        if len(self._flow_times) >= 2 and self._flow_times[-1] > self._flow_times[0]:
-            rate = (len(self._flow_times) - 1) / (self._flow_times[-1] - self._flow_times[0])
-        hb = now - self.last_heartbeat_wall
-        est = f"{s.vx_m_s:+.2f} {s.vy_m_s:+.2f}" if s is not None and not self.last_held else "  --    -- "
+        ses = self.session
+        s = ses.last_step
+        sp = ses.setpoint(now)
+        rate = ses.flow_rate_hz()
+        hb = now - ses.last_heartbeat_s
+        est = f"{s.vx_m_s:+.2f} {s.vy_m_s:+.2f}" if s is not None and not ses.last_held else "  --    -- "
         t = f"{s.time_s:7.2f}" if s is not None else "    --"
         state = "CONTROL" if self.in_control else ("standby" if self.profile_known else "standby (profile?)")
         hold = f" HOLD: {self.monitor.cause.value}" if self.monitor.cause is not HoldCause.NONE else ""
@@ -1024,14 +723,11 @@ class LiveCompanion:
 
     def _on_stall(self, gap_s: float, now: float) -> None:
         """The loop did not run for ``gap_s`` (> ``flow_timeout_s``): the process was stopped,
-        starved or swapped out. Name the hold (not "link lost": the link may well be fine), then
-        handle at once everything that waited, before the wall-clock failsafe would act: every
-        flow frame but the newest is dropped (as is the newest if it is too old), so control
-        resumes from the newest frame with the integrator as it was before the stall."""
-        self.counters["companion stalls"] += 1
-        self._stall_gap_s = max(self._stall_gap_s, gap_s)
-        if self.in_control:
-            self._report(HoldCause.COMPANION_STALLED, now - gap_s)
+        starved or swapped out. The session names the hold (``Session.on_stall``); then everything
+        that waited is handled at once, before the watchdog would act: every flow frame but the
+        newest is dropped (as is the newest if it is too old), so control resumes from the newest
+        frame with the integrator as it was before the stall."""
+        self._emit(self.session.on_stall(gap_s, now))
         self._read_ahead()
         flow = FLOW_MESSAGE[self.profile]
         frames = [m for m in self._pending if m.get_type() == flow and self._from_vehicle(m)]
@@ -1068,7 +764,6 @@ class LiveCompanion:
         parts = [f"{c['steps']} steps", f"{c['commands']} commands", f"{self.monitor.episodes} hold episode(s)"]
         parts += [f"{k}: {v}" for k, v in sorted(c.items()) if k not in ("steps", "commands")]
         return "flowhold: " + ", ".join(parts)
-
 
 def run_cli(args: Any) -> int:
     """``python -m companion run``: 0 after ``--duration`` of control or a clean Ctrl-C / SIGTERM."""
