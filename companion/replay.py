@@ -703,16 +703,22 @@ def write_csv(result: ReplayResult, path: str | Path, *, progress: bool = False)
     return names
 
 
-def write_parquet(result: ReplayResult, path: str | Path) -> list[str]:
-    """Write the per-frame columns (the CSV's, same names and order) as a Parquet file: float64
-    and integer columns as they are, ``hold_cause`` as strings. Needs pyarrow (the ``parquet``
-    extra: ``pip install 'flowhold[parquet]'``); without it a one-line ``UsageError``.
-    Returns the columns written."""
+def _pyarrow() -> tuple[Any, Any]:
+    """pyarrow and pyarrow.parquet, or a one-line ``UsageError`` saying how to install them."""
     try:
         import pyarrow as pa
         import pyarrow.parquet as pq
     except ImportError:
         raise UsageError("--parquet needs pyarrow: pip install 'flowhold[parquet]' (or pip install pyarrow)") from None
+    return pa, pq
+
+
+def write_parquet(result: ReplayResult, path: str | Path) -> list[str]:
+    """Write the per-frame columns (the CSV's, same names and order) as a Parquet file: float64
+    and integer columns as they are, ``hold_cause`` as strings. Needs pyarrow (the ``parquet``
+    extra: ``pip install 'flowhold[parquet]'``); without it a one-line ``UsageError``.
+    Returns the columns written."""
+    pa, pq = _pyarrow()
     names, _ = _csv_formats(result)
     arrays = []
     for c in names:
@@ -742,6 +748,7 @@ def run_cli(args: argparse.Namespace) -> int:
         check_output(args.csv, "--csv")
     if parquet:
         check_output(parquet, "--parquet")
+        _pyarrow()  # before the recording is read
     if args.plot:
         check_output(args.plot, "--plot")
     cfg = load_config(args.config)

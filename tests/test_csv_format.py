@@ -148,6 +148,25 @@ def test_parquet_has_the_csv_columns(tmp_path, flight_a_plain):
             np.testing.assert_array_equal(got, want)
 
 
+def test_parquet_without_pyarrow_is_one_line(flight_a_plain, tmp_path):
+    """``--parquet`` where pyarrow is not installed: one line saying how to install it, the usage
+    exit code, and no file."""
+    from companion.errors import ExitCode
+
+    probe = ("import sys; sys.modules['pyarrow'] = None; sys.modules['pyarrow.parquet'] = None\n"
+             "from companion.cli import main\nsys.exit(main(sys.argv[1:]))")
+    out = subprocess.run([sys.executable, "-c", probe, "replay", str(flight_a_plain), "--parquet",
+                          str(tmp_path / "r.parquet")], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == int(ExitCode.USAGE)
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "pyarrow" in lines[0] and "pip install" in lines[0] and "Traceback" not in out.stderr
+    assert not (tmp_path / "r.parquet").exists()
+    # said before the recording is read (a missing one would be another error)
+    missing = subprocess.run([sys.executable, "-c", probe, "replay", str(tmp_path / "none.tlog"), "--parquet",
+                              str(tmp_path / "r.parquet")], capture_output=True, text=True, cwd=ROOT)
+    assert missing.returncode == int(ExitCode.USAGE) and "pyarrow" in missing.stderr
+
+
 def test_replay_without_an_output_is_one_line(flight_a_plain):
     out = subprocess.run([sys.executable, "-m", "companion", "replay", str(flight_a_plain)], capture_output=True,
                          text=True, cwd=ROOT)
