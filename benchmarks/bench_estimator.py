@@ -28,19 +28,25 @@ standard error from five equal segments (the spread of the segments' lags / sqrt
 Also printed: the flow sample's age at the companion's OPTICAL_FLOW on C0, measured from the
 autopilot's own DataFlash log of that flight (its OF records carry the sample's time; matched to
 the tlog's messages by their float payload): what ``flow_sample_age_s`` in the config is made of.
-``--sensitivity`` reruns the Kalman filter with each noise level x1/4 and x4 and the age +-5 ms.
-``--sim`` prints instead the table of docs/estimator.md: the conditions of tests/test_velocity_kf.py
-(the companion flying the filter in the reference simulator, in process), its RMS and lag against
-eq. 15's on the same frames.
+``--sensitivity`` reruns the Kalman filter with each noise level x1/4 and x4, the step prior's
+rate x1/3 and x3 and size x1/2 and x2, and the age +-5 ms; with ``--sim``, the simulator's worst
+condition for each change of the step prior. ``--sim`` prints instead the table of
+docs/estimator.md: the conditions of tests/test_velocity_kf.py (the companion flying the filter in
+the reference simulator, in process), its RMS, lag and variance against eq. 15's on the same frames.
+``--false-alarms`` counts the steps the filter takes where there are none: on synthetic eq. 15 whose
+noise is exactly the filter's model (a counting sensor's quantization at 1 and 3 m; SITL's white
+flow noise at 1.5 m), 1000 s each, on the two SITL flights, and on 120 s simulated hovers.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import importlib.util
 import json
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -48,7 +54,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from companion.config import load_config  # noqa: E402
+from companion import estimator  # noqa: E402
+from companion.config import load_config, replace_section  # noqa: E402
 from companion.core import EstimatorOptions, VelocityEstimator, kalman_settings  # noqa: E402
 from companion.profiles import Profile  # noqa: E402
 from companion.recording import Recording, load_recording  # noqa: E402
@@ -60,6 +67,11 @@ FLIGHTS = ("e1", "c0")
 LAG_SPAN_S = 0.04
 LAG_STEP_S = 0.00025
 SEGMENTS = 5
+#: the sensitivity study: each process noise x1/4 and x4, the step prior's rate x1/3 and x3, its size x1/2 and x2
+PSD_CHANGES = (("accel_psd", 0.25), ("accel_psd", 4.0), ("disturbance_psd", 0.25), ("disturbance_psd", 4.0),
+               ("drag_psd", 0.25), ("drag_psd", 4.0))
+STEP_CHANGES = (("step_rate_per_s", 1 / 3), ("step_rate_per_s", 3.0), ("step_sigma_m_s2", 0.5),
+                ("step_sigma_m_s2", 2.0))
 #: issue 19's targets: per axis RMS at or below EKF3's on E1, and |lag| <= 3 ms
 TARGET_RMS_M_S = 0.017
 TARGET_LAG_MS = 3.0
@@ -201,9 +213,8 @@ def run(sensitivity: bool = False) -> dict:
 def _sensitivity(comp: Recording, cfg, truth: Truth) -> dict:
     base = kalman_settings(cfg, Profile.ARDUPILOT)
     cases = {"as configured": base}
-    for f, factor in (("accel_psd", 0.25), ("accel_psd", 4.0), ("disturbance_psd", 0.25), ("disturbance_psd", 4.0),
-                      ("drag_psd", 0.25), ("drag_psd", 4.0)):
-        cases[f"{f} x{factor:g}"] = dataclasses.replace(base, **{f: getattr(base, f) * factor})
+    for f, factor in (*PSD_CHANGES, *STEP_CHANGES):
+        cases[f"{f} x{factor:.3g}"] = dataclasses.replace(base, **{f: getattr(base, f) * factor})
     for d in (-0.005, 0.005):
         cases[f"age {d * 1e3:+.0f} ms"] = dataclasses.replace(base, flow_sample_age_s=base.flow_sample_age_s + d)
     out = {}
@@ -213,28 +224,148 @@ def _sensitivity(comp: Recording, cfg, truth: Truth) -> dict:
                                            truth)
         r = score(vx, vy, t, truth)
         out[name] = r
-        print(f"  {name:22s} RMS {r['rms_m_s'][0]:.4f} {r['rms_m_s'][1]:.4f}  lag {r['lag_ms'][0]:+5.1f} "
+        print(f"  {name:26s} RMS {r['rms_m_s'][0]:.4f} {r['rms_m_s'][1]:.4f}  lag {r['lag_ms'][0]:+5.1f} "
               f"{r['lag_ms'][1]:+5.1f} ms")
     return out
 
 
-def sim_table() -> list[str]:
-    """docs/estimator.md's simulator table, from tests/test_velocity_kf.py's flights."""
+def _test_module():
     spec = importlib.util.spec_from_file_location("test_velocity_kf", ROOT / "tests" / "test_velocity_kf.py")
     assert spec is not None and spec.loader is not None
     tv = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tv)
+    return tv
+
+
+def _sim_scores(tv, conditions, name: str, options: EstimatorOptions | None = None
+                ) -> tuple[list[float], list[float], list[float], list[float], list[float]]:
+    """kf RMS, kf lag, eq. 15 RMS, eq. 15 lag, kf mean error^2 / variance, per axis, from 2 s on."""
+    cfg, kw = conditions[name]
+    run = tv.fly_core(cfg, options=options, **kw)
+    (kr, kl), (er, el) = tv.rms_and_lag(run, "est"), tv.rms_and_lag(run, "eq15")
+    m = run["t"] >= 2.0
+    nees = [float(np.mean((run[f"est_{a}"][m] - run[f"v{a}"][m]) ** 2 / run[f"var_{a}"][m])) for a in "xy"]
+    return kr, kl, er, el, nees
+
+
+def sim_table() -> list[str]:
+    """docs/estimator.md's simulator table, from tests/test_velocity_kf.py's flights."""
+    tv = _test_module()
     conditions = tv._conditions(load_config())
     lines = ["| condition (1 m unless said; 20 s of 0.3/0.2 Hz setpoints) | RMS x, y (m/s): kf | eq. 15 "
-             "| lag x, y (ms): kf | eq. 15 |", "|---|---|---|---|---|"]
-    for name in (*tv.CONDITIONS, *tv.CORNERS):
-        cfg, kw = conditions[name]
-        run = tv.fly_core(cfg, **kw)
-        (kr, kl), (er, el) = tv.rms_and_lag(run, "est"), tv.rms_and_lag(run, "eq15")
-        mark = " (corner)" if name in tv.CORNERS else ""
-        lines.append(f"| {name}{mark} | {kr[0]:.4f}, {kr[1]:.4f} | {er[0]:.4f}, {er[1]:.4f} "
-                     f"| {kl[0]:+.1f}, {kl[1]:+.1f} | {el[0]:+.1f}, {el[1]:+.1f} |")
+             "| lag x, y (ms): kf | eq. 15 | error^2 / variance x, y |", "|---|---|---|---|---|---|"]
+    for name in tv.CONDITIONS:
+        kr, kl, er, el, nees = _sim_scores(tv, conditions, name)
+        lines.append(f"| {name} | {kr[0]:.4f}, {kr[1]:.4f} | {er[0]:.4f}, {er[1]:.4f} "
+                     f"| {kl[0]:+.1f}, {kl[1]:+.1f} | {el[0]:+.1f}, {el[1]:+.1f} | {nees[0]:.2f}, {nees[1]:.2f} |")
     return lines
+
+
+def sim_sensitivity() -> list[str]:
+    """Each change of the step prior over all the simulator's conditions: the worst |lag|, the
+    largest RMS / eq. 15's and the largest error^2 / variance, each with its condition."""
+    tv = _test_module()
+    conditions = tv._conditions(load_config())
+    lines = ["| step prior | worst abs lag (ms) | largest RMS / eq. 15's | largest error^2 / variance |",
+             "|---|---|---|---|"]
+    for f, factor in ((None, 1.0), *STEP_CHANGES):
+        worst = [(0.0, ""), (0.0, ""), (0.0, "")]
+        for name in tv.CONDITIONS:
+            ks = kalman_settings(conditions[name][0], Profile.PAPER)  # the condition's own (its flow's age)
+            if f is not None:
+                ks = dataclasses.replace(ks, **{f: getattr(ks, f) * factor})
+            opt = EstimatorOptions(estimator=VelocityEstimator.KF, kalman=ks)
+            kr, kl, er, _, nees = _sim_scores(tv, conditions, name, opt)
+            for i, v in enumerate((max(abs(x) for x in kl), max(a / b for a, b in zip(kr, er, strict=True)),
+                                   max(nees))):
+                if v > worst[i][0]:
+                    worst[i] = (v, name)
+        label = "as configured" if f is None else f"{f} x{factor:.3g}"
+        lines.append(f"| {label} | {worst[0][0]:.1f} ({worst[0][1]}) | {worst[1][0]:.3f} ({worst[1][1]}) "
+                     f"| {worst[2][0]:.2f} ({worst[2][1]}) |")
+    return lines
+
+
+def _synthetic_steps(settings: estimator.KalmanSettings, range_m: float, counts: bool, duration_s: float,
+                     rng: np.random.Generator) -> int:
+    """Steps taken on eq. 15 whose noise is the filter's own model, with no step: the truth
+    follows the attitude exactly (a 3 deg 0.3 Hz pitch, the filter's trapezoids); the noise is the
+    difference of two uniform quantization errors of one count (``counts``) or white."""
+    kf = estimator.VelocityKalman(settings)
+    t_frame = settings.nominal_frame_s
+    amp, w = np.radians(3.0), 2 * np.pi * 0.3
+    g = settings.gravity_m_s2
+
+    def accel(t: float) -> float:
+        return -g * float(np.tan(amp * np.sin(w * t)))
+
+    v_knot, e_prev = 0.0, 0.0
+    q = settings.quantization_rad * np.sqrt(12.0)
+    for k in range(int(duration_s / t_frame)):
+        t = k * t_frame
+        kf.on_attitude(t, 0.0, float(amp * np.sin(w * t)), 0.0, 0.0)
+        if k > 0:  # the sample is at t - T/2: the velocity there, with the filter's own straight lines
+            v_sample = v_knot + t_frame / 8.0 * (3.0 * accel(t - t_frame) + accel(t))
+            if counts:
+                e = float(rng.uniform(-q / 2, q / 2))
+                noise, e_prev = range_m / t_frame * (e - e_prev), e
+            else:
+                noise = float(rng.normal(0.0, settings.flow_noise_rad_s * range_m))
+            kf.update(t, t_frame, v_sample + noise, 0.0, range_m)
+            v_knot += 0.5 * t_frame * (accel(t - t_frame) + accel(t))
+    return kf.axes[0].steps_found
+
+
+def false_alarms() -> list[str]:
+    """Steps taken where there are none (docs/estimator.md)."""
+    lines = []
+    paper = replace_section(load_config(), "companion", velocity_estimator="kf")
+    counts = kalman_settings(paper, Profile.PAPER)
+    sitl_cfg = load_config(CONFIG)
+    rates = dataclasses.replace(kalman_settings(sitl_cfg, Profile.ARDUPILOT), flow_noise_rad_s=0.029,
+                                flow_sample_age_s=0.0)
+    for label, ks, rng_m, is_counts in (("counts, 1 m", counts, 1.0, True), ("counts, 3 m", counts, 3.0, True),
+                                        ("SITL's flow noise (0.029 rad/s white), 1.5 m", rates, 1.5, False)):
+        for f, factor in ((None, 1.0), ("step_rate_per_s", 1 / 3), ("step_rate_per_s", 3.0)):
+            s = ks if f is None else dataclasses.replace(ks, **{f: getattr(ks, f) * factor})
+            n = _synthetic_steps(s, rng_m, is_counts, 1000.0, np.random.default_rng(1))
+            lines.append(f"synthetic, {label}, step rate {s.step_rate_per_s:.3g}/s: {n} steps in 1000 s "
+                         f"({n / 1000 * 60:.2f} a minute)")
+    opt = EstimatorOptions(estimator=VelocityEstimator.KF)
+    for fl in FLIGHTS:
+        comp = load_recording(DATA / f"flight_{fl}_companion.tlog.gz")
+        with _counting_steps() as n:
+            res = replay(comp, sitl_cfg, Profile.ARDUPILOT, opt)
+        fused = int(np.isfinite(res["vx_var_m2_s2"]).sum())
+        lines.append(f"SITL {fl.upper()} (the whole recording, ground and take-off included): {n[0]} steps on the "
+                     f"two axes over {fused} frames ({fused * 0.02:.0f} s)")
+    tv = _test_module()
+    for alt in (1.0, 3.0):
+        cfg = replace_section(paper, "world", altitude_m=alt)
+        for what, setpoint in (("the tests' 0.3/0.2 Hz setpoints", tv.excite),
+                               ("0.1/0.08 m/s setpoints", lambda t: tuple(0.2 * v for v in tv.excite(t)))):
+            with _counting_steps() as n:
+                tv.fly_core(cfg, duration_s=120.0, setpoint=setpoint)
+            lines.append(f"simulator at {alt:g} m, {what}, 120 s: {n[0]} steps on the two axes")
+    return lines
+
+
+@contextlib.contextmanager
+def _counting_steps() -> Iterator[list[int]]:
+    """Counts every step any ``VelocityKalman`` takes into its state meanwhile (the filters inside
+    replay and the simulated companion are not reachable from outside)."""
+    counted = [0]
+    real = estimator._Axis._take_step
+
+    def counting(axis: estimator._Axis) -> None:
+        counted[0] += 1
+        real(axis)
+
+    estimator._Axis._take_step = counting  # type: ignore[method-assign]
+    try:
+        yield counted
+    finally:
+        estimator._Axis._take_step = real  # type: ignore[method-assign]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -243,9 +374,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sensitivity", action="store_true", help="also the Kalman filter with each noise level "
                     "x1/4 and x4 and the flow sample's age +-5 ms")
     ap.add_argument("--sim", action="store_true", help="instead, the simulator table of docs/estimator.md")
+    ap.add_argument("--false-alarms", action="store_true", help="instead, the steps taken where there are none")
     args = ap.parse_args(argv)
+    if args.false_alarms:
+        print("\n".join(false_alarms()))
+        return 0
     if args.sim:
         print("\n".join(sim_table()))
+        if args.sensitivity:
+            print()
+            print("\n".join(sim_sensitivity()))
         return 0
     results = run(args.sensitivity)
     if args.json:

@@ -11,9 +11,12 @@ prints the full comparison).
 Tolerances: the simulated flights are deterministic (seeded, sensor noise off but for the flow's
 quantization, which is the paper's), so each number is exact for the code as it stands and the
 assertions are the issue's own bounds, not fitted. The margins as measured (docs/estimator.md):
-the filter's RMS is 0.0011-0.012 m/s against eq. 15's 0.017-0.10, its lag within +-1.7 ms
-against the 3 ms bound, eq. 15 is 11-40 ms late. The lag is the peak of the correlation with the
-truth shifted continuously (0.25 ms steps, parabola-refined), from 2 s on (the start-up).
+the filter's RMS is 0.0011-0.0069 m/s against eq. 15's 0.016-0.106, its lag within -1.2..+2.1 ms
+against the 3 ms bound (the paper's gust at 3 m and everything at once at 1 m with the flow 20 ms
+old included), eq. 15 is 11-63 ms late; its error^2 / variance 0.10-0.64. The lag is the peak of
+the correlation with the truth shifted continuously (0.25 ms steps, parabola-refined), from 2 s on
+(the start-up). The filter alone on a counting sensor (``_counts_flight``) holds the two parts of
+the gust's handling: the quantization state and the step search.
 """
 
 from __future__ import annotations
@@ -70,13 +73,14 @@ def excite(t: float) -> tuple[float, float]:
 
 
 def fly_core(cfg, *, duration_s: float = 20.0, setpoint=excite, force=lambda _t: (0.0, 0.0), trim_rad: float = 0.0,
-             seed: int = 0) -> dict[str, np.ndarray]:
+             seed: int = 0, options: EstimatorOptions | None = None) -> dict[str, np.ndarray]:
     """The reference simulator closed by ``CompanionCore`` (paper profile), sensors fed directly in
     the live loop's order (gyro and range, the flow, then ATTITUDE: the attitude of a frame arrives
     after its flow, as ``telemetry.frame_messages`` sends them); ``trim_rad`` is added to the
-    roll and pitch the companion is told. Per frame: truth, the estimate flown, eq. 15."""
+    roll and pitch the companion is told; ``options`` replace the config's estimator choice (a
+    study's own Kalman settings). Per frame: truth, the estimate flown, eq. 15."""
     sim = Simulator(cfg, rng=np.random.default_rng(seed), external_force=force)
-    core = CompanionCore(cfg, Profile.PAPER)
+    core = CompanionCore(cfg, Profile.PAPER, options)
     q = cfg.flow_sensor.q_rad_per_count
     n = int(round(duration_s / cfg.flow_sensor.frame_period_s))
     s = sim.current
@@ -163,8 +167,6 @@ def _conditions(paper_cfg) -> dict[str, tuple[Any, dict]]:
                                                                 linear_drag=LinearDrag(0.5)), TRIM),
         "everything at 0.5 m, flow 20 ms old": (with_effects(_aged(alt(base, 0.5), 0.020), wind_force=WIND,
                                                             linear_drag=LinearDrag(0.5)), GUST | TRIM),
-        # the corners where the 3 ms is not met (docs/estimator.md): a force step seen through
-        # the coarser flow of a greater height is found a few frames later
         "gust at 3 m": (alt(base, 3.0), GUST),
         "everything at 1 m, flow 20 ms old": (with_effects(_aged(base, 0.020), wind_force=WIND,
                                                           linear_drag=LinearDrag(0.5)), GUST | TRIM),
@@ -173,9 +175,8 @@ def _conditions(paper_cfg) -> dict[str, tuple[Any, dict]]:
 
 CONDITIONS = ("nominal", "gust", "steady wind", "trim 2 deg", "drag", "altitude 0.5 m", "altitude 3 m",
               "flow 10 ms old", "flow 20 ms old", "gust at 0.5 m, flow 20 ms old", "gust, flow 20 ms old",
-              "wind, drag, trim at 3 m, flow 20 ms old", "everything at 0.5 m, flow 20 ms old")
-#: measured lag (ms) of the corners, and the bound held there: the issue's 3 ms is not met
-CORNERS = {"gust at 3 m": 8.0, "everything at 1 m, flow 20 ms old": 5.0}
+              "wind, drag, trim at 3 m, flow 20 ms old", "everything at 0.5 m, flow 20 ms old", "gust at 3 m",
+              "everything at 1 m, flow 20 ms old")
 
 
 def _check(condition: str, paper_cfg, lag_bound_ms: float) -> None:
@@ -197,13 +198,6 @@ def _check(condition: str, paper_cfg, lag_bound_ms: float) -> None:
 @pytest.mark.parametrize("condition", CONDITIONS)
 def test_kalman_filter_is_never_worse_than_eq15_and_never_late(paper_cfg, condition):
     _check(condition, paper_cfg, LAG_BOUND_MS)
-
-
-@pytest.mark.parametrize("condition", list(CORNERS))
-def test_the_corners_where_a_gust_is_found_late(paper_cfg, condition):
-    """A 4 N step of force at 3 m, or on top of everything else with the flow 20 ms old: RMS still
-    under eq. 15's / 2.5, but up to 7 ms late (eq. 15: 16-40 ms)."""
-    _check(condition, paper_cfg, CORNERS[condition])
 
 
 def test_the_paper_scenarios_still_hold_on_the_kalman_filter(paper_cfg):
@@ -316,6 +310,88 @@ def test_the_disturbance_state_takes_a_steady_force_and_drag_is_learnt():
     ax = kf.axes[0]
     assert ax.c == pytest.approx(0.25, abs=0.03) and ax.b == pytest.approx(-0.3, abs=0.03)
     assert abs(np.mean(errs[-500:])) < 2e-3
+
+
+Q = 0.0015706806282722514  # Table VI's rad per count
+
+
+def _counts_flight(range_m: float, pitch_deg: float, duration_s: float, *, quantization: bool = True,
+                   step_at_s: float = math.inf, step_m_s2: float = 0.0) -> dict[str, np.ndarray]:
+    """The filter alone on eq. 15 of a counting sensor (eq. 9-11, no rotation in the flow): the
+    truth accelerates by -g tan(pitch) (pitch a 0.3 Hz sinusoid of ``pitch_deg``), plus
+    ``step_m_s2`` from ``step_at_s``, integrated by 1 ms; the counts are the floor of the
+    accumulated scene angle at each 20 ms frame. ``quantization``: the filter knows the counts'
+    quantization (``quantization_rad``); else the white model of the same per-frame variance
+    Q^2 / 6. Per frame: time, truth, estimate, variance, normalised innovation, steps taken,
+    disturbance, probability of a step."""
+    T = 0.02
+    common = dict(gravity_m_s2=G, nominal_frame_s=T, flow_sample_age_s=0.0, range_noise_m=0.0,
+                  accel_psd=(G * math.radians(0.1)) ** 2 * T, disturbance_psd=0.1 ** 2 / 10, drag_psd=0.003 ** 2)
+    s = (KalmanSettings(flow_noise_rad_s=0.0, quantization_rad=Q / math.sqrt(12.0), **common) if quantization
+         else KalmanSettings(flow_noise_rad_s=Q / (T * math.sqrt(6.0)), **common))
+    kf = VelocityKalman(s)
+    amp, w = math.radians(pitch_deg), 2 * math.pi * 0.3
+    v = x = 0.0
+    counts = 0
+    rows = []
+    for k in range(int(round(duration_s / T))):
+        t = k * T
+        kf.on_attitude(t, 0.0, amp * math.sin(w * t), 0.0, amp * w * math.cos(w * t))
+        now = math.floor(-x / range_m / Q)  # eq. 8 and 10: phi = -x / A, X = floor(phi / Q)
+        if k > 0:
+            vx, _, var, _ = kf.update(t, T, -(now - counts) * Q * range_m / T, 0.0, range_m)
+            ax = kf.axes[0]
+            rows.append((t, v, vx, var, ax.nu / math.sqrt(ax.nu_var), ax.steps_found, ax.b, ax.p_step))
+        counts = now
+        for j in range(20):
+            tj = t + 0.001 * j
+            a = -G * math.tan(amp * math.sin(w * tj)) + (step_m_s2 if tj >= step_at_s else 0.0)
+            x += v * 0.001 + 0.5 * a * 1e-6
+            v += a * 0.001
+    a_ = np.array(rows)
+    names = ("t", "v", "est", "var", "nu", "steps", "b", "p_step")
+    return {name: a_[:, i] for i, name in enumerate(names)}
+
+
+@pytest.mark.parametrize("range_m, pitch_deg", [(1.0, 3.0), (3.0, 6.0)])
+def test_the_quantization_state_whitens_the_innovations(range_m, pitch_deg):
+    """A frame's count error is the difference of two quantization errors (eq. 10), so treated as
+    white noise the innovations are correlated -1/2 from one frame to the next; with the last
+    frame's error as a state they are white with about unit variance, and no step is found in
+    two minutes of a flight that has none."""
+    run = _counts_flight(range_m, pitch_deg, 120.0)
+    z = run["nu"][100:]
+    assert abs(np.corrcoef(z[:-1], z[1:])[0, 1]) < 0.2
+    assert 0.7 < np.var(z) < 1.1
+    assert run["steps"][-1] == 0
+    white = _counts_flight(range_m, pitch_deg, 120.0, quantization=False)["nu"][100:]
+    assert np.corrcoef(white[:-1], white[1:])[0, 1] < -0.4
+
+
+@pytest.mark.parametrize("range_m, pitch_deg, within_s, err_m_s", [(1.0, 3.0, 0.08, 0.01), (3.0, 6.0, 0.12, 0.02)])
+def test_a_step_in_the_disturbance_is_found_taken_and_announced(range_m, pitch_deg, within_s, err_m_s):
+    """The paper's gust as a step of -1.74 m/s^2 (4 N on 2.3 kg) at 10 s: taken into the state
+    within 4 frames at 1 m and 6 at 3 m (the flow's count is three times coarser there), the
+    disturbance then within 0.1 m/s^2 and the estimate within 0.01 (0.02) m/s; none before."""
+    run = _counts_flight(range_m, pitch_deg, 12.0, step_at_s=10.0, step_m_s2=-1.74)
+    t = run["t"]
+    first = t[np.argmax(run["steps"] > 0)]
+    assert 10.0 < first <= 10.0 + within_s
+    after = t >= 10.3
+    assert run["b"][np.searchsorted(t, 10.3)] == pytest.approx(-1.74, abs=0.1)
+    assert np.abs(run["est"][after] - run["v"][after]).max() < err_m_s
+
+
+def test_the_variance_rises_with_a_step_before_it_is_taken():
+    """Between the step and the frame that takes it the published variance holds the candidate
+    steps: it grows several times over, so the error of those frames stays within a few sigma."""
+    run = _counts_flight(1.0, 3.0, 12.0, step_at_s=10.0, step_m_s2=-1.74)
+    t = run["t"]
+    before = np.sqrt(run["var"][(t > 9.0) & (t < 10.0)]).max()
+    k = np.searchsorted(t, 10.04)
+    assert run["steps"][k] == 0 and run["p_step"][k] > 0.1
+    assert np.sqrt(run["var"][k]) > 5 * before
+    assert abs(run["est"][k] - run["v"][k]) < 3 * np.sqrt(run["var"][k])
 
 
 def test_without_a_fresh_attitude_eq15_passes_through_and_a_reboot_restarts():
