@@ -56,7 +56,7 @@ from companion.recording import load_recording
 from companion.replay import replay
 from simvehicle import telemetry
 from simvehicle.scenarios import figures, run_named
-from simvehicle.sim import Simulator
+from simvehicle.sim import Simulator, Turbulence
 
 mav = link.mav
 G = 9.81
@@ -73,13 +73,15 @@ def excite(t: float) -> tuple[float, float]:
 
 
 def fly_core(cfg, *, duration_s: float = 20.0, setpoint=excite, force=lambda _t: (0.0, 0.0), trim_rad: float = 0.0,
-             seed: int = 0, options: EstimatorOptions | None = None) -> dict[str, np.ndarray]:
+             seed: int = 0, options: EstimatorOptions | None = None, turbulence: Turbulence | None = None
+             ) -> dict[str, np.ndarray]:
     """The reference simulator closed by ``CompanionCore`` (paper profile), sensors fed directly in
     the live loop's order (gyro and range, the flow, then ATTITUDE: the attitude of a frame arrives
     after its flow, as ``telemetry.frame_messages`` sends them); ``trim_rad`` is added to the
     roll and pitch the companion is told; ``options`` replace the config's estimator choice (a
-    study's own Kalman settings). Per frame: truth, the estimate flown, eq. 15."""
-    sim = Simulator(cfg, rng=np.random.default_rng(seed), external_force=force)
+    study's own Kalman settings); ``turbulence`` a random force besides ``force``. Per frame:
+    truth, the estimate flown, eq. 15."""
+    sim = Simulator(cfg, rng=np.random.default_rng(seed), external_force=force, turbulence=turbulence)
     core = CompanionCore(cfg, Profile.PAPER, options)
     q = cfg.flow_sensor.q_rad_per_count
     n = int(round(duration_s / cfg.flow_sensor.frame_period_s))
