@@ -4,7 +4,9 @@
                                          [--gyro {auto,imu,flow}] [--estimator {auto,eq15,tilt,kf}]
 
 The live code path over the recorded messages, fast: the recording is read into columns
-(``companion.recording.load_recording``), the live core's alignment rules are applied to whole
+(``companion.recording.load_recording``), the vehicle's signals taken from them by
+``companion.signals`` (which sender, which time field, which units, every gyro message as
+received), the live core's alignment rules are applied to whole
 columns (``core.align_gyro_columns``, ``core.latest_before``, ``core.repeat_mask``: only the
 gyro, range, attitude and heartbeat messages received *before* each flow message count, as in
 the live loop), gating and eq. 15 run on whole columns (``core.gate_frames``,
@@ -52,7 +54,6 @@ from typing import Any
 
 import numpy as np
 
-from companion.columnar import vehicle_sysid
 from companion.config import Config, load_config
 from companion.core import (
     CAUSE_CODES,
@@ -84,11 +85,10 @@ from companion.core import (
 )
 from companion.csv_format import iter_rows
 from companion.errors import RecordingError, UsageError, check_output, writing
-from companion.inbound import INT16_CLIP, MessageRouter
+from companion.inbound import MessageRouter
 from companion.mavlink_ids import (
     BODY_FRAMES,
     COMPANION_COMPONENT,
-    DOWNWARD,
     GUIDED_NOGPS,
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_AUTOPILOT_INVALID,
@@ -96,7 +96,7 @@ from companion.mavlink_ids import (
     MAV_MODE_FLAG_SAFETY_ARMED,
     NOT_VEHICLE_TYPES,
 )
-from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FlowColumns, Profile, detect_profile, flow_columns
+from companion.profiles import FLOW_MESSAGE, FlowColumns, Profile, detect_profile
 from companion.recording import (
     MessageTable,
     Recording,
@@ -105,8 +105,19 @@ from companion.recording import (
     read_recording_bytes,
     recording_name,
 )
-from companion.rotation import quaternions_to_euler
 from companion.setpoint import decayed_setpoint
+from companion.signals import (
+    companion_commands,
+    companion_table,
+    downward_range,
+    gyro_as_received,
+    time_ms,
+    vehicle_attitude,
+    vehicle_flow,
+    vehicle_table,
+)
+from companion.signals import stable_order as _stable_order
+from companion.signals import time_s as message_time_s
 
 #: truth is interpolated only between LOCAL_POSITION_NED samples at most this far apart (s)
 TRUTH_MAX_GAP_S = 0.25
@@ -147,50 +158,6 @@ class ReplayResult:
 # Selecting the vehicle's messages
 
 
-def _from(rec: Recording, name: str, sysid: int) -> MessageTable | None:
-    if name not in rec:
-        return None
-    t = rec.tables[name]
-    if not np.all(t.sysid == sysid):
-        t = t.from_sender(sysid=sysid)
-    return t if len(t) else None
-
-
-def _gyro_columns(rec: Recording, sysid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]:
-    """Every gyro message of the vehicle in arrival order: (record, time_s, gx, gy rad/s, names)."""
-    parts = []
-    names = []
-    for name, scale in GYRO_MESSAGES.items():
-        t = _from(rec, name, sysid)
-        if t is None:
-            continue
-        names.append(name)
-        # SCALED_IMU carries time_boot_ms (ms), RAW_IMU and HIGHRES_IMU time_usec (µs)
-        time_s = t["time_boot_ms"] * 1e-3 if "time_usec" not in t.fields else t["time_usec"] * 1e-6
-        gx, gy = t["xgyro"] * scale, t["ygyro"] * scale
-        if name != "HIGHRES_IMU":  # an int16 mrad/s field at its limit has clipped: rate unknown
-            clipped = np.maximum(np.abs(t["xgyro"].astype(np.int64)), np.abs(t["ygyro"].astype(np.int64))) \
-                >= INT16_CLIP
-            gx, gy = np.where(clipped, np.nan, gx), np.where(clipped, np.nan, gy)
-        parts.append((t.record, np.asarray(time_s, float), gx, gy))
-    if not parts:
-        e = np.zeros(0)
-        return np.zeros(0, np.int64), e, e, e, ""
-    rec_ = np.concatenate([p[0] for p in parts])
-    order = _stable_order(rec_)
-    cols = [np.concatenate([np.asarray(p[i], float) for p in parts])[order] for i in (1, 2, 3)]
-    return rec_[order], cols[0], cols[1], cols[2], ", ".join(names)
-
-
-def _companion(t: MessageTable, fields: tuple[str, ...]) -> MessageTable:
-    """The rows of ``t`` sent by the companion (component 191), with only ``fields`` copied."""
-    mask = t.compid == COMPANION_COMPONENT
-    if mask.all():
-        return t
-    return MessageTable(t.name, t.t_s[mask], t.sysid[mask], t.compid[mask], t.record[mask],
-                        {k: t[k][mask] for k in fields})
-
-
 def vehicle_engaged(autopilot: Any, base_mode: Any, custom_mode: Any) -> Any:
     """Whether a vehicle HEARTBEAT says the companion is in control: armed and, on ArduPilot,
     in GUIDED_NOGPS (custom_mode 20). Elementwise."""
@@ -200,7 +167,7 @@ def vehicle_engaged(autopilot: Any, base_mode: Any, custom_mode: Any) -> Any:
 
 
 def _vehicle_heartbeats(rec: Recording, sysid: int) -> MessageTable | None:
-    hb = _from(rec, "HEARTBEAT", sysid)
+    hb = vehicle_table(rec, "HEARTBEAT", sysid)
     if hb is None:
         return None
     own = (hb["autopilot"] != MAV_AUTOPILOT_INVALID) & ~np.isin(hb["type"], NOT_VEHICLE_TYPES)
@@ -213,14 +180,6 @@ def _ms_key(time_s: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         k = np.round(np.asarray(time_s, float) * 1e3)
     return np.where(np.isfinite(k), k, -1).astype(np.int64)
-
-
-def _stable_order(keys: np.ndarray) -> np.ndarray:
-    """``np.argsort(keys, kind="stable")``, without the sort when the keys are already in
-    order (a recording's times and sequence numbers nearly always are)."""
-    if len(keys) < 2 or bool(np.all(keys[1:] >= keys[:-1])):  # False with a NaN: then sorted
-        return np.arange(len(keys))
-    return np.argsort(keys, kind="stable")
 
 
 def _match_last(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
@@ -254,11 +213,11 @@ def frame_setpoints(rec: Recording, cfg: Config, sysid: int, flow_record: np.nda
         gvy = np.asarray(g["vy"], float)
         local = frame == MAV_FRAME_LOCAL_NED
         if local.any():  # rotated by the yaw the vehicle reported last before the setpoint arrived
-            att = _from(rec, "ATTITUDE", sysid)
+            att = vehicle_attitude(rec, sysid)
             yaw = np.zeros(len(g))
             if att is not None:
                 j = latest_before(att.record, g.record)
-                yaw_att = np.asarray(att["yaw"], float)
+                yaw_att = att.yaw
                 yaw = np.where(j >= 0, yaw_att[np.maximum(j, 0)], 0.0)
                 yaw = np.where(np.isfinite(yaw), yaw, 0.0)
             c, s = np.cos(yaw), np.sin(yaw)
@@ -274,14 +233,13 @@ def frame_setpoints(rec: Recording, cfg: Config, sysid: int, flow_record: np.nda
                 sx[i], sy[i] = decayed_setpoint((float(gvx[j[i]]), float(gvy[j[i]])), (0.0, 0.0), float(age[i]),
                                                 timeout)
             src.append("the GCS's SET_POSITION_TARGET_LOCAL_NED")
-    if "POSITION_TARGET_LOCAL_NED" in rec:
-        pt = _companion(rec.tables["POSITION_TARGET_LOCAL_NED"], ("time_boot_ms", "vx", "vy"))
-        if len(pt):
-            j = _match_last(np.asarray(pt["time_boot_ms"], np.int64), frame_ms)
-            hit = j >= 0
-            sx = np.where(hit, np.asarray(pt["vx"], float)[np.maximum(j, 0)], sx)
-            sy = np.where(hit, np.asarray(pt["vy"], float)[np.maximum(j, 0)], sy)
-            src.insert(0, f"the companion's POSITION_TARGET_LOCAL_NED ({int(hit.sum())} frames)")
+    pt = companion_table(rec, "POSITION_TARGET_LOCAL_NED", ("time_boot_ms", "vx", "vy"))
+    if pt is not None:
+        j = _match_last(time_ms(pt), frame_ms)
+        hit = j >= 0
+        sx = np.where(hit, np.asarray(pt["vx"], float)[np.maximum(j, 0)], sx)
+        sy = np.where(hit, np.asarray(pt["vy"], float)[np.maximum(j, 0)], sy)
+        src.insert(0, f"the companion's POSITION_TARGET_LOCAL_NED ({int(hit.sum())} frames)")
     # a non-finite setpoint is ignored: the previous one stays (CompanionCore.set_setpoint)
     bad = ~(np.isfinite(sx) & np.isfinite(sy))
     if bad.any():
@@ -319,13 +277,11 @@ def _prepare(rec: Recording, cfg: Config, profile: Profile) -> tuple[_Frames, in
             if other else ""
         raise RecordingError(f"{Path(rec.path).name}: no {name} messages in the recording, nothing to replay"
                              f" with the {profile.value} profile{hint}")
-    flow_all = rec.tables[name]
-    sysid = vehicle_sysid(flow_all)
-    flow = flow_all if np.all(flow_all.sysid == sysid) else flow_all.from_sender(sysid=sysid)
+    vf = vehicle_flow(rec, profile, cfg.flow_sensor.q_rad_per_count)
+    sysid, flow, fc = vf.sysid, vf.table, vf.columns
     notes = []
-    if len(flow) < len(flow_all):
-        notes.append(f"ignored {len(flow_all) - len(flow)} {name} messages from systems other than {sysid}")
-    fc = flow_columns(flow, profile, cfg.flow_sensor.q_rad_per_count)
+    if vf.n_other:
+        notes.append(f"ignored {vf.n_other} {name} messages from systems other than {sysid}")
     frame_ms = _ms_key(fc.time_s)
     sx, sy, src = frame_setpoints(rec, cfg, sysid, flow.record, flow.t_s, frame_ms)
     notes.append(f"setpoint from {src}")
@@ -393,11 +349,12 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
             notes.append(f"the {profile.value} flow message carries no body rate: every frame holds "
                          "(use --gyro imu)")
     else:
-        g_rec, g_t, g_x, g_y, g_names = _gyro_columns(rec, sysid)
+        gyro = gyro_as_received(rec, sysid)
+        g_rec, g_t, g_x, g_y = gyro.record, gyro.time_s, gyro.x_rad_s, gyro.y_rad_s
         if len(g_rec) == 0:
             notes.append("no gyro (RAW_IMU, SCALED_IMU or HIGHRES_IMU) from the vehicle: every frame holds")
         else:
-            notes.append(f"gyro from {g_names}")
+            notes.append(f"gyro from {', '.join(gyro.names)}")
         j = align_gyro_columns(g_rec, g_t, record, time_s, p.max_gyro_skew_s)
         if fc.increment:  # the flow covers a window: its rotation is the gyro's mean over it (core.kalman_measurement)
             gyro_hist = (g_t, g_x, g_y, *gyro_history_columns(g_rec, g_t, record))
@@ -406,38 +363,32 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
         gy = np.where(gyro_found, g_y[np.maximum(j, 0)] if len(g_y) else np.nan, np.nan)
 
     # the latest downward range reading received before each frame
-    ds = _from(rec, "DISTANCE_SENSOR", sysid)
-    if ds is not None:
-        down = ds["orientation"] == DOWNWARD
-        if not down.all():  # (select copies every field)
-            ds = ds.select(down)
-    if ds is None or len(ds) == 0:
+    ds = downward_range(rec, sysid)
+    if ds is None:
         notes.append("no downward DISTANCE_SENSOR (orientation 25) from the vehicle: every frame holds")
         range_found = np.zeros(n, dtype=bool)
         range_t = range_m = np.full(n, np.nan)
     else:
-        cur = ds["current_distance"]
-        r_all = np.where((ds["min_distance"] <= cur) & (cur <= ds["max_distance"]), cur * 0.01, np.nan)
         j = latest_before(ds.record, record)
         range_found = j >= 0
-        range_t = np.where(range_found, ds["time_boot_ms"][np.maximum(j, 0)] * 1e-3, np.nan)
-        range_m = np.where(range_found, r_all[np.maximum(j, 0)], np.nan)
+        range_t = np.where(range_found, ds.time_s[np.maximum(j, 0)], np.nan)
+        range_m = np.where(range_found, ds.range_m[np.maximum(j, 0)], np.nan)
 
     # the attitude for the optional tilt filter
     roll_a = pitch_a = np.full(n, np.nan)
     tilt: TiltFilter | None = options.resolved_tilt(profile)
     estimator = options.resolved_estimator(profile)
     if tilt is not None:
-        att = _from(rec, "ATTITUDE", sysid)
+        att = vehicle_attitude(rec, sysid)
         if att is None:
             notes.append("no ATTITUDE from the vehicle: the tilt filter passes eq. 15 through")
         else:
             j = latest_before(att.record, record)
-            t_a = np.where(j >= 0, att["time_boot_ms"][np.maximum(j, 0)] * 1e-3, np.nan)
+            t_a = np.where(j >= 0, att.time_s[np.maximum(j, 0)], np.nan)
             with np.errstate(invalid="ignore"):
                 fresh = (j >= 0) & ((time_s - t_a) <= tilt.max_attitude_age_s)
-            roll_a = np.where(fresh, np.asarray(att["roll"], float)[np.maximum(j, 0)], np.nan)
-            pitch_a = np.where(fresh, np.asarray(att["pitch"], float)[np.maximum(j, 0)], np.nan)
+            roll_a = np.where(fresh, att.roll[np.maximum(j, 0)], np.nan)
+            pitch_a = np.where(fresh, att.pitch[np.maximum(j, 0)], np.nan)
 
     # gating and eq. 15 over all frames at once
     finite_t = np.where(np.isfinite(time_s), time_s, np.nan)
@@ -506,14 +457,13 @@ def _kalman(rec: Recording, sysid: int, cfg: Config, profile: Profile, options: 
             mean = gyro_window_mean(rows[first[i]:last[i] + 1], t1 - float(span[i]), t1, max_skew_s)
             zx[i], zy[i] = kalman_measurement(float(vx[i]), float(vy[i]), float(gx[i]), float(gy[i]), mean,
                                               float(range_m[i]))
-    att = _from(rec, "ATTITUDE", sysid)
+    att = vehicle_attitude(rec, sysid)
     if att is None:
         notes.append("no ATTITUDE from the vehicle: the Kalman filter passes eq. 15 through")
         e = np.zeros(0)
         cols: tuple[np.ndarray, ...] = (np.zeros(0, np.int64), e, e, e, e, e)
     else:
-        cols = (att.record, np.asarray(att["time_boot_ms"], float) * 1e-3,
-                *(np.asarray(att[k], float) for k in ("roll", "pitch", "rollspeed", "pitchspeed")))
+        cols = (att.record, att.time_s, att.roll, att.pitch, att.rollspeed, att.pitchspeed)
     kf = VelocityKalman(settings)
     return kalman_columns(kf, usable, record, time_s, span, zx, zy, range_m, *cols)
 
@@ -524,11 +474,11 @@ def _cross_frame_checks(rec: Recording, sysid: int, cfg: Config, record: np.ndar
     """``core.Plausibility`` over the usable frames in order, as ``CompanionCore.on_flow`` runs it:
     with the latest ATTITUDE rates received before each frame (None when absent or not finite).
     Returns the codes with the vetoed frames' causes."""
-    att = _from(rec, "ATTITUDE", sysid)
-    if att is not None and len(att):
+    att = vehicle_attitude(rec, sysid)
+    if att is not None:
         j = latest_before(att.record, record)
-        ar_x = np.where(j >= 0, np.asarray(att["rollspeed"], float)[np.maximum(j, 0)], np.nan)
-        ar_y = np.where(j >= 0, np.asarray(att["pitchspeed"], float)[np.maximum(j, 0)], np.nan)
+        ar_x = np.where(j >= 0, att.rollspeed[np.maximum(j, 0)], np.nan)
+        ar_y = np.where(j >= 0, att.pitchspeed[np.maximum(j, 0)], np.nan)
     else:
         ar_x = ar_y = np.full(len(record), np.nan)
     usable = np.flatnonzero(codes == 0)
@@ -543,10 +493,10 @@ def _cross_frame_checks(rec: Recording, sysid: int, cfg: Config, record: np.ndar
 
 def _truth(rec: Recording, sysid: int, time_s: np.ndarray) -> dict[str, np.ndarray]:
     """LOCAL_POSITION_NED velocity at each frame time, in body axes by the ATTITUDE yaw."""
-    lp = _from(rec, "LOCAL_POSITION_NED", sysid)
+    lp = vehicle_table(rec, "LOCAL_POSITION_NED", sysid)
     if lp is None:
         return {}
-    t = np.asarray(lp["time_boot_ms"], float) * 1e-3
+    t = message_time_s(lp)
     order = _stable_order(t)
     t = t[order]
     vn = np.asarray(lp["vx"], float)[order]
@@ -558,12 +508,12 @@ def _truth(rec: Recording, sysid: int, time_s: np.ndarray) -> dict[str, np.ndarr
         ok = (time_s >= t[0]) & (time_s <= t[-1]) & (t[hi] - t[lo] <= TRUTH_MAX_GAP_S)
     vn_f = np.where(ok, np.interp(time_s, t, vn), np.nan)
     ve_f = np.where(ok, np.interp(time_s, t, ve), np.nan)
-    att = _from(rec, "ATTITUDE", sysid)
+    att = vehicle_attitude(rec, sysid)
     yaw = np.zeros(len(time_s))
     if att is not None:
-        ta = np.asarray(att["time_boot_ms"], float) * 1e-3
+        ta = att.time_s
         o = _stable_order(ta)
-        yaw = np.interp(time_s, ta[o], np.unwrap(np.asarray(att["yaw"], float)[o]))
+        yaw = np.interp(time_s, ta[o], np.unwrap(att.yaw[o]))
     c, s = np.cos(yaw), np.sin(yaw)
     return {"truth_vx_m_s": c * vn_f + s * ve_f, "truth_vy_m_s": -s * vn_f + c * ve_f}
 
@@ -572,19 +522,16 @@ def _recorded(rec: Recording, time_s: np.ndarray) -> dict[str, np.ndarray]:
     """The companion's own recorded command and estimate for each frame (NaN where none)."""
     out: dict[str, np.ndarray] = {}
     ms = _ms_key(time_s)
-    if "SET_ATTITUDE_TARGET" in rec:
-        sat = _companion(rec.tables["SET_ATTITUDE_TARGET"], ("time_boot_ms", "q"))
-        if len(sat):
-            j = _match_last(np.asarray(sat["time_boot_ms"], np.int64), ms)
-            roll, pitch, _ = quaternions_to_euler(sat["q"])
-            out["rec_roll_cmd_rad"] = np.where(j >= 0, roll[np.maximum(j, 0)], np.nan)
-            out["rec_pitch_cmd_rad"] = np.where(j >= 0, pitch[np.maximum(j, 0)], np.nan)
-    if "VISION_SPEED_ESTIMATE" in rec:
-        vse = _companion(rec.tables["VISION_SPEED_ESTIMATE"], ("usec", "x", "y"))
-        if len(vse):
-            j = _match_last(np.round(np.asarray(vse["usec"], float) * 1e-3).astype(np.int64), ms)
-            out["rec_vx_m_s"] = np.where(j >= 0, np.asarray(vse["x"], float)[np.maximum(j, 0)], np.nan)
-            out["rec_vy_m_s"] = np.where(j >= 0, np.asarray(vse["y"], float)[np.maximum(j, 0)], np.nan)
+    sat = companion_commands(rec)
+    if sat is not None:
+        j = _match_last(sat.time_ms, ms)
+        out["rec_roll_cmd_rad"] = np.where(j >= 0, sat.roll[np.maximum(j, 0)], np.nan)
+        out["rec_pitch_cmd_rad"] = np.where(j >= 0, sat.pitch[np.maximum(j, 0)], np.nan)
+    vse = companion_table(rec, "VISION_SPEED_ESTIMATE", ("usec", "x", "y"))
+    if vse is not None:
+        j = _match_last(time_ms(vse), ms)
+        out["rec_vx_m_s"] = np.where(j >= 0, np.asarray(vse["x"], float)[np.maximum(j, 0)], np.nan)
+        out["rec_vy_m_s"] = np.where(j >= 0, np.asarray(vse["y"], float)[np.maximum(j, 0)], np.nan)
     return out
 
 

@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 from numpy.testing import assert_array_equal
 
-from companion.columnar import MessageTable, vehicle_sysid
+from companion import signals
+from companion.columnar import MessageTable, Recording, vehicle_sysid
 from companion.config import Config, replace_section
 from companion.diagnose.diagnosis import diagnose
 from companion.profiles import Profile
@@ -168,3 +169,76 @@ def test_recording_run_reads_the_flow_with_the_flights_config(tmp_path, paper_cf
     assert_array_equal(flown.columns["flow_y_counts"], run.columns["flow_y_counts"])
     nominal = recording_run(tlog)  # Table VI's Q: other counts
     assert np.nanmax(np.abs(nominal.columns["flow_x_counts"] - run.columns["flow_x_counts"])) >= 1.0
+
+
+def _table(name: str, records: list[int], sysid: int = 1, compid: int = 1, **fields: Any) -> MessageTable:
+    n = len(records)
+    return MessageTable(name, np.arange(n, dtype=float), np.full(n, sysid, np.uint8), np.full(n, compid, np.uint8),
+                        np.array(records, np.int64), {k: np.asarray(v) for k, v in fields.items()})
+
+
+def test_signals_every_gyro_message_in_si_units_on_its_own_time_field():
+    """companion.signals: RAW_IMU (mrad/s, time_usec), SCALED_IMU (mrad/s, time_boot_ms) and
+    HIGHRES_IMU (rad/s, time_usec) give the same rad/s and seconds; an int16 field at 32767 has
+    clipped (x and y NaN, as the live loop has it); as received they merge in arrival order, as
+    one sensor the first of the three the vehicle sent; another system's gyro is not the vehicle's."""
+    i16 = np.int16
+    raw = _table("RAW_IMU", [0, 3], time_usec=np.array([1_000_000, 1_040_000], np.uint64),
+                 xgyro=np.array([25, 32767], i16), ygyro=np.array([-40, 1], i16), zgyro=np.array([3, -32767], i16),
+                 xacc=np.array([0, 10], i16), yacc=np.array([0, 0], i16), zacc=np.array([-1000, -1000], i16))
+    scaled = _table("SCALED_IMU", [1], time_boot_ms=np.array([1020], np.uint32), xgyro=np.array([25], i16),
+                    ygyro=np.array([-40], i16), zgyro=np.array([3], i16))
+    highres = _table("HIGHRES_IMU", [2], time_usec=np.array([1_030_000], np.uint64),
+                     xgyro=np.array([0.025], np.float32), ygyro=np.array([-0.04], np.float32),
+                     zgyro=np.array([0.003], np.float32))
+    stray = _table("SCALED_IMU", [4], sysid=7, time_boot_ms=np.array([9], np.uint32), xgyro=np.array([1], i16),
+                   ygyro=np.array([1], i16), zgyro=np.array([1], i16))
+    other = MessageTable("SCALED_IMU", *(np.concatenate([getattr(scaled, k), getattr(stray, k)])
+                                         for k in ("t_s", "sysid", "compid", "record")),
+                         {k: np.concatenate([scaled.fields[k], stray.fields[k]]) for k in scaled.fields})
+    rec = Recording("x.tlog", {"RAW_IMU": raw, "SCALED_IMU": other, "HIGHRES_IMU": highres}, "tlog")
+    g = signals.gyro_as_received(rec, 1)
+    assert g.names == ("RAW_IMU", "SCALED_IMU", "HIGHRES_IMU")
+    assert_array_equal(g.record, [0, 1, 2, 3])
+    np.testing.assert_allclose(g.time_s, [1.0, 1.02, 1.03, 1.04], rtol=0, atol=1e-12)
+    assert_array_equal(g.time_ms, [1000, 1020, 1030, 1040])
+    np.testing.assert_allclose(g.x_rad_s[:3], 0.025, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(g.y_rad_s[:3], -0.04, rtol=0, atol=1e-8)
+    assert np.isnan(g.x_rad_s[3]) and np.isnan(g.y_rad_s[3]) and np.isnan(g.z_rad_s[3])  # clipped
+    assert g.accel_m_s2 is None  # SCALED_IMU and HIGHRES_IMU were sent without accelerometer fields here
+    one = signals.gyro_sensor(rec, 1)
+    assert one.names == ("RAW_IMU",) and len(one) == 2
+    np.testing.assert_allclose(one.accel_m_s2, [[0, 0, -9.80665], [0.0980665, 0, -9.80665]], rtol=1e-12)
+    assert signals.gyro_sensor(rec, 7).names == ("SCALED_IMU",)
+    assert len(signals.gyro_as_received(rec, 5)) == 0 and signals.gyro_sensor(rec, 5).names == ()
+
+
+def test_signals_senders_range_and_commands():
+    """The vehicle's messages are its system's; the companion's those of component 191 (any
+    system); DISTANCE_SENSOR facing down only, cm -> m, invalid outside [min, max]; a companion
+    command's angles from its quaternion, its time as whole ms (a microsecond field rounded)."""
+    ds = _table("DISTANCE_SENSOR", [0, 1, 2, 3], sysid=1, time_boot_ms=np.array([10, 20, 30, 40], np.uint32),
+                current_distance=np.array([100, 5, 120, 300], np.uint16), min_distance=np.full(4, 10, np.uint16),
+                max_distance=np.full(4, 400, np.uint16), orientation=np.array([25, 25, 0, 25], np.uint8))
+    q = np.array([[np.cos(0.05), np.sin(0.05), 0.0, 0.0]], np.float32)  # roll 0.1 rad
+    sat = _table("SET_ATTITUDE_TARGET", [5], sysid=1, compid=191, time_boot_ms=np.array([40], np.uint32), q=q)
+    vse = _table("VISION_SPEED_ESTIMATE", [6, 7], sysid=1, compid=191, usec=np.array([40_400, 40_600], np.uint64),
+                 x=np.zeros(2, np.float32), y=np.zeros(2, np.float32))
+    rec = Recording("x.tlog", {"DISTANCE_SENSOR": ds, "SET_ATTITUDE_TARGET": sat, "VISION_SPEED_ESTIMATE": vse},
+                    "tlog")
+    r = signals.downward_range(rec, 1)
+    assert r is not None
+    assert_array_equal(r.record, [0, 1, 3])
+    np.testing.assert_allclose(r.time_s, [0.01, 0.02, 0.04])
+    assert_array_equal(r.valid, [True, False, True])
+    np.testing.assert_allclose(r.reading_m, [1.0, 0.05, 3.0])
+    assert_array_equal(np.isnan(r.range_m), [False, True, False])
+    assert signals.downward_range(rec, 2) is None
+    assert signals.vehicle_table(rec, "SET_ATTITUDE_TARGET", 1) is not None  # its system's, component aside
+    cmd = signals.companion_commands(rec)
+    assert cmd is not None
+    np.testing.assert_allclose([cmd.roll[0], cmd.pitch[0]], [0.1, 0.0], atol=1e-7)
+    est = signals.companion_table(rec, "VISION_SPEED_ESTIMATE")
+    assert est is not None
+    assert_array_equal(signals.time_ms(est), [40, 41])
+    assert signals.companion_table(rec, "DISTANCE_SENSOR") is None
