@@ -36,7 +36,6 @@ one resolution and rate.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
@@ -130,16 +129,16 @@ def time_ms(table: MessageTable) -> np.ndarray:
 # The flow
 
 
-@dataclass(frozen=True)
 class Flow:
     """The vehicle's flow messages in the paper's convention (``profiles.FlowColumns``: the
     profile's own time rule, scene-angle increments or rates, the message's own body rates).
     ``n_other``: flow messages from other systems, left out."""
 
-    sysid: int
-    table: MessageTable
-    columns: FlowColumns
-    n_other: int
+    def __init__(self, sysid: int, table: MessageTable, columns: FlowColumns, n_other: int) -> None:
+        self.sysid = sysid
+        self.table = table
+        self.columns = columns
+        self.n_other = n_other
 
 
 def vehicle_flow(rec: Recording, profile: Profile, q_rad_per_count: float) -> Flow:
@@ -256,13 +255,13 @@ def gyro_sensor(rec: Recording, sysid: int) -> GyroSamples:
 # Range, attitude, commands
 
 
-@dataclass(frozen=True)
 class RangeReadings:
     """The vehicle's downward DISTANCE_SENSOR readings (orientation 25), in arrival order, shape
     (n,): ``record``, ``time_s``, ``reading_m`` the distance as sent (cm -> m), ``valid`` within
     the sensor's own [min_distance, max_distance]; ``range_m`` is ``reading_m`` where valid, else NaN."""
 
-    table: MessageTable
+    def __init__(self, table: MessageTable) -> None:
+        self.table = table
 
     @cached_property
     def record(self) -> np.ndarray:
@@ -304,12 +303,12 @@ def downward_range(rec: Recording, sysid: int) -> RangeReadings | None:
     return RangeReadings(ds) if len(ds) else None
 
 
-@dataclass(frozen=True)
 class Attitude:
     """ATTITUDE (the vehicle's estimate) in arrival order, shape (n,): ``time_s``, and ``roll``,
     ``pitch``, ``yaw`` (rad), ``rollspeed``, ``pitchspeed`` (rad/s) as float64."""
 
-    table: MessageTable
+    def __init__(self, table: MessageTable) -> None:
+        self.table = table
 
     @property
     def record(self) -> np.ndarray:
@@ -349,13 +348,13 @@ def vehicle_attitude(rec: Recording, sysid: int) -> Attitude | None:
     return None if at is None else Attitude(at)
 
 
-@dataclass(frozen=True)
 class AttitudeCommand:
     """Commanded attitudes (the companion's SET_ATTITUDE_TARGET or the vehicle's ATTITUDE_TARGET)
     in arrival order, shape (n,): ``time_s``, ``time_ms``, ``q`` (n, 4) [w, x, y, z] float64,
     ``roll``, ``pitch`` rad (ZYX, ``rotation.quaternions_to_euler``)."""
 
-    table: MessageTable
+    def __init__(self, table: MessageTable) -> None:
+        self.table = table
 
     @cached_property
     def time_s(self) -> np.ndarray:

@@ -89,6 +89,42 @@ def gust_stray(gust) -> Path:
     return _rewrite(gust, gust.with_name("gust_stray.tlog"), stray)
 
 
+@pytest.fixture(scope="module")
+def gust_scaled_stray_raw(gust_scaled) -> Path:
+    """The SCALED_IMU gust flight with five RAW_IMU messages from another system (7) first: RAW_IMU
+    comes first in the order of preference, but these are not the vehicle's gyro."""
+    enc = mav.MAVLink(None, srcSystem=7, srcComponent=1)
+    first = [True]
+
+    def stray(msg: Any) -> list[tuple[float, bytes]]:
+        out = []
+        if first[0]:
+            first[0] = False
+            out = [(msg._timestamp, bytes(enc.raw_imu_encode(k, 0, 0, -1000, 500, 500, 500, 0, 0, 0).pack(enc)))
+                   for k in range(5)]
+        return out + _same(msg)
+
+    return _rewrite(gust_scaled, gust_scaled.with_name("gust_scaled_stray_raw.tlog"), stray)
+
+
+@pytest.fixture(scope="module")
+def gust_clipped(gust) -> Path:
+    """The gust flight with the x gyro of every 50th RAW_IMU at its int16 limit (clipped)."""
+    enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    k = [0]
+
+    def clip(msg: Any) -> list[tuple[float, bytes]]:
+        if msg.get_type() != "RAW_IMU":
+            return _same(msg)
+        k[0] += 1
+        x = 32767 if k[0] % 50 == 0 else msg.xgyro
+        new = enc.raw_imu_encode(msg.time_usec, msg.xacc, msg.yacc, msg.zacc, x, msg.ygyro, msg.zgyro, msg.xmag,
+                                 msg.ymag, msg.zmag)
+        return [(msg._timestamp, bytes(new.pack(enc)))]
+
+    return _rewrite(gust, gust.with_name("gust_clipped.tlog"), clip)
+
+
 def _assert_replays_equal(a: Any, b: Any) -> None:
     assert sorted(a.columns) == sorted(b.columns)
     for key in a.columns:
@@ -141,6 +177,32 @@ def test_the_vehicle_is_the_most_frequent_flow_sender_everywhere(gust, gust_stra
     _assert_replays_equal(res, replay(clean, paper_cfg, Profile.PAPER))
     assert _report(stray, paper_cfg) == _report(clean, paper_cfg)
     _assert_series_equal(_series(stray, paper_cfg), _series(clean, paper_cfg))
+
+
+def test_another_systems_gyro_is_not_the_vehicles(gust, gust_scaled_stray_raw, paper_cfg):
+    """Five RAW_IMU from system 7 beside the vehicle's SCALED_IMU: the analyses took the first gyro
+    message of the recording (RAW_IMU, none of it the vehicle's); they now take the vehicle's own
+    (companion.signals.gyro_sensor), and so see the RAW_IMU recording's signals."""
+    raw, rec = load_recording(gust), load_recording(gust_scaled_stray_raw)
+    assert len(rec.table("RAW_IMU")) == 5 and set(rec.table("RAW_IMU").sysid.tolist()) == {7}
+    _assert_replays_equal(replay(rec, paper_cfg, Profile.PAPER), replay(raw, paper_cfg, Profile.PAPER))
+    _assert_series_equal(_series(rec, paper_cfg), _series(raw, paper_cfg))
+
+
+def test_a_clipped_gyro_sample_is_unknown_everywhere(gust, gust_clipped, paper_cfg):
+    """An int16 mrad/s gyro field at 32767 has clipped: the rate is unknown. Replay (the live
+    loop's rule) holds the frames aligned with such a sample; the sensor-only diagnosis leaves the
+    sample out (it read 32.8 rad/s)."""
+    clean, rec = load_recording(gust), load_recording(gust_clipped)
+    n_clipped = int(np.count_nonzero(rec.table("RAW_IMU")["xgyro"] == 32767))
+    assert n_clipped == len(rec.table("RAW_IMU")) // 50
+    res = replay(rec, paper_cfg, Profile.PAPER)
+    assert np.count_nonzero(res["hold_cause"] == "GYRO_INVALID") == n_clipped
+    s, ref = extract_series(rec, paper_cfg), extract_series(clean, paper_cfg)
+    assert len(s.gyro_t_s) == len(ref.gyro_t_s) - n_clipped and np.all(np.isfinite(s.gyro_rad_s))
+    assert np.abs(s.gyro_rad_s).max() < 30.0
+    keep = np.isin(ref.gyro_t_s, s.gyro_t_s)
+    assert_array_equal(s.gyro_rad_s, ref.gyro_rad_s[keep])
 
 
 def _flow(sysids: list[int]) -> MessageTable:
