@@ -62,12 +62,23 @@ from companion.config import (
     load_config,
     with_effects,
 )
-from companion.errors import LinkError, UsageError, check_output, output_error
+from companion.errors import LinkError, RecordingError, UsageError, check_output, output_error
 from companion.mavlink_ids import COMPANION_COMPONENT, GUIDED_NOGPS
 from companion.outbound import VELOCITY_TYPE_MASK
-from companion.profiles import FLOW_MESSAGE, Profile, detect_profile, flow_columns
-from companion.recording import load_recording
+from companion.profiles import FLOW_MESSAGE, Profile, detect_profile
+from companion.recording import MessageTable, load_recording
 from companion.rotation import quaternion_to_euler
+from companion.signals import (
+    Attitude,
+    AttitudeCommand,
+    companion_commands,
+    companion_table,
+    downward_range,
+    gyro_sensor,
+    time_ms,
+    vehicle_flow,
+    vehicle_table,
+)
 from companion.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S, TlogWriter
 from simvehicle import telemetry
 from simvehicle.scenarios import SCENARIOS, Run, Scenario
@@ -1118,9 +1129,11 @@ def recording_run(path: str | Path, *, name: str = "loop", config: Config | str 
     layout of ``simvehicle.scenarios.Run`` (so ``figures`` and ``plot_run`` apply).
 
     Frames are the vehicle's LOCAL_POSITION_NED (truth); the other columns are matched by
-    their time fields: ATTITUDE, RAW_IMU, DISTANCE_SENSOR, the flow message (counts in the
-    paper's convention, ``dphi / Q`` rounded to whole counts, whatever the profile), the companion's
-    VISION_SPEED_ESTIMATE (NaN while it holds) and POSITION_TARGET_LOCAL_NED. The command of
+    their time fields: ATTITUDE, the gyro, the downward DISTANCE_SENSOR (the reading as sent), the
+    flow message (counts in the paper's convention, ``dphi / Q`` rounded to whole counts, whatever
+    the profile), the companion's VISION_SPEED_ESTIMATE (NaN while it holds) and
+    POSITION_TARGET_LOCAL_NED. The signals, their sender (the vehicle: the most frequent flow
+    sender), time fields and units are ``companion.signals``' (replay's and diagnose's). The command of
     frame k is the one that acted from frame k+1: the vehicle's ATTITUDE_TARGET there (the last
     frame takes the companion's SET_ATTITUDE_TARGET for it when there is one). Only the first
     boot is read when the recording holds a SIM_REBOOT.
@@ -1131,78 +1144,82 @@ def recording_run(path: str | Path, *, name: str = "loop", config: Config | str 
     """
     cfg = config if isinstance(config, Config) else load_config(config)
     rec = load_recording(path)
-    lp = rec.table("LOCAL_POSITION_NED").from_sender(compid=1)
-    t_ms = lp["time_boot_ms"].astype(np.int64)
+    profile = Profile(detect_profile(rec)[0])
+    flow = vehicle_flow(rec, profile, cfg.flow_sensor.q_rad_per_count)
+    vehicle = flow.sysid
+
+    def vehicle_only(name: str) -> MessageTable:
+        rec.table(name)  # a RecordingError naming the message when the recording has none
+        table = vehicle_table(rec, name, vehicle)
+        if table is None:
+            raise RecordingError(f"{Path(path).name}: no {name} from the vehicle (system {vehicle})")
+        return table
+
+    lp = vehicle_only("LOCAL_POSITION_NED")
+    t_ms = time_ms(lp)
     n = len(t_ms)
     if n > 1 and np.any(np.diff(t_ms) <= 0):
         n = int(np.argmax(np.diff(t_ms) <= 0)) + 1
     t_ms = t_ms[:n]
     key = {int(t): i for i, t in enumerate(t_ms)}
 
-    def column(table: Any, time_ms: np.ndarray, values: np.ndarray, *, last: bool = False) -> np.ndarray:
+    def column(keys_ms: np.ndarray, values: np.ndarray, *, last: bool = False) -> np.ndarray:
+        """``values`` on the frames, matched by their whole-millisecond times ``keys_ms``."""
         out = np.full(n, np.nan)
-        order = range(len(time_ms) - 1, -1, -1) if not last else range(len(time_ms))
+        order = range(len(keys_ms) - 1, -1, -1) if not last else range(len(keys_ms))
         for j in order:  # first occurrence wins (reversed fill), or last
-            i = key.get(int(time_ms[j]))
+            i = key.get(int(keys_ms[j]))
             if i is not None:
                 out[i] = values[j]
         return out
 
+    nan = np.full(n, np.nan)
     cols: dict[str, np.ndarray] = {"t_s": t_ms * 1e-3}
     cols["x_m"], cols["y_m"] = lp["x"][:n].astype(float), lp["y"][:n].astype(float)
     cols["vx_m_s"], cols["vy_m_s"] = lp["vx"][:n].astype(float), lp["vy"][:n].astype(float)
-    att = rec.table("ATTITUDE").from_sender(compid=1)
-    a_ms = att["time_boot_ms"].astype(np.int64)
-    for col, f in (("roll_rad", "roll"), ("pitch_rad", "pitch"), ("roll_rate_rad_s", "rollspeed"),
-                   ("pitch_rate_rad_s", "pitchspeed")):
-        cols[col] = column(att, a_ms, att[f].astype(float))
-    if "RAW_IMU" in rec:
-        imu = rec.tables["RAW_IMU"].from_sender(compid=1)
-        i_ms = np.round(imu["time_usec"].astype(float) * 1e-3).astype(np.int64)
-        cols["gyro_x_rad_s"] = column(imu, i_ms, imu["xgyro"].astype(float) * 1e-3)
-        cols["gyro_y_rad_s"] = column(imu, i_ms, imu["ygyro"].astype(float) * 1e-3)
-    else:
-        cols["gyro_x_rad_s"] = cols["gyro_y_rad_s"] = np.full(n, np.nan)
-    if "DISTANCE_SENSOR" in rec:
-        ds = rec.tables["DISTANCE_SENSOR"].from_sender(compid=1)
-        cols["range_m"] = column(ds, ds["time_boot_ms"].astype(np.int64), ds["current_distance"] * 0.01)
-    else:
-        cols["range_m"] = np.full(n, np.nan)
-    profile = Profile(detect_profile(rec)[0])
+    att = Attitude(vehicle_only("ATTITUDE"))
+    a_ms = time_ms(att.table)
+    for col, angle in (("roll_rad", att.roll), ("pitch_rad", att.pitch), ("roll_rate_rad_s", att.rollspeed),
+                       ("pitch_rate_rad_s", att.pitchspeed)):
+        cols[col] = column(a_ms, angle)
+    gyro = gyro_sensor(rec, vehicle)
+    cols["gyro_x_rad_s"] = column(gyro.time_ms, gyro.x_rad_s) if len(gyro) else nan
+    cols["gyro_y_rad_s"] = column(gyro.time_ms, gyro.y_rad_s) if len(gyro) else nan
+    ds = downward_range(rec, vehicle)
+    # the reading as sent (the scenarios' Run holds the rangefinder's reading, valid or not)
+    cols["range_m"] = column(ds.time_ms, ds.reading_m) if ds is not None else nan
+    # counts in the paper's convention whatever the profile, with the flight's own Q and frame period
     q = cfg.flow_sensor.q_rad_per_count
-    fname = FLOW_MESSAGE[profile]
-    cols["flow_x_counts"] = cols["flow_y_counts"] = np.full(n, np.nan)
-    if fname in rec:
-        ft = rec.tables[fname].from_sender(compid=1)
-        fc = flow_columns(ft, profile, q)
-        scale = 1.0 / q if fc.increment else cfg.flow_sensor.frame_period_s / q
-        f_ms = np.round(np.asarray(fc.time_s) * 1e3).astype(np.int64)
-        # the simulated sensor's counts are whole: undo the float32 rounding of rates and radians
-        cols["flow_x_counts"] = column(ft, f_ms, np.round(np.asarray(fc.scene_x) * scale))
-        cols["flow_y_counts"] = column(ft, f_ms, np.round(np.asarray(fc.scene_y) * scale))
-    cols["est_vx_m_s"] = cols["est_vy_m_s"] = np.full(n, np.nan)
-    if "VISION_SPEED_ESTIMATE" in rec:
-        vs = rec.tables["VISION_SPEED_ESTIMATE"].from_sender(compid=COMPANION_COMPONENT)
-        v_ms = np.round(vs["usec"].astype(float) * 1e-3).astype(np.int64)
-        cols["est_vx_m_s"], cols["est_vy_m_s"] = column(vs, v_ms, vs["x"]), column(vs, v_ms, vs["y"])
-    cols["vx_set_m_s"] = cols["vy_set_m_s"] = np.full(n, np.nan)
-    if "POSITION_TARGET_LOCAL_NED" in rec:
-        pt = rec.tables["POSITION_TARGET_LOCAL_NED"].from_sender(compid=COMPANION_COMPONENT)
-        p_ms = pt["time_boot_ms"].astype(np.int64)
-        cols["vx_set_m_s"], cols["vy_set_m_s"] = column(pt, p_ms, pt["vx"]), column(pt, p_ms, pt["vy"])
+    fc = flow.columns
+    scale = 1.0 / q if fc.increment else cfg.flow_sensor.frame_period_s / q
+    f_ms = np.round(np.asarray(fc.time_s) * 1e3).astype(np.int64)
+    # the simulated sensor's counts are whole: undo the float32 rounding of rates and radians
+    cols["flow_x_counts"] = column(f_ms, np.round(np.asarray(fc.scene_x) * scale))
+    cols["flow_y_counts"] = column(f_ms, np.round(np.asarray(fc.scene_y) * scale))
+    cols["est_vx_m_s"] = cols["est_vy_m_s"] = nan
+    vs = companion_table(rec, "VISION_SPEED_ESTIMATE")
+    if vs is not None:
+        v_ms = time_ms(vs)
+        cols["est_vx_m_s"], cols["est_vy_m_s"] = column(v_ms, vs["x"]), column(v_ms, vs["y"])
+    cols["vx_set_m_s"] = cols["vy_set_m_s"] = nan
+    pt = companion_table(rec, "POSITION_TARGET_LOCAL_NED")
+    if pt is not None:
+        p_ms = time_ms(pt)
+        cols["vx_set_m_s"], cols["vy_set_m_s"] = column(p_ms, pt["vx"]), column(p_ms, pt["vy"])
     roll_cmd, pitch_cmd = np.zeros(n), np.zeros(n)
-    at = rec.table("ATTITUDE_TARGET").from_sender(compid=1)
-    at_ms = at["time_boot_ms"].astype(np.int64)
-    eul = np.array([quaternion_to_euler(qq)[:2] for qq in at["q"]]).reshape(-1, 2)
-    acted_roll = column(at, at_ms, eul[:, 0])
-    acted_pitch = column(at, at_ms, eul[:, 1])
+    at = AttitudeCommand(vehicle_only("ATTITUDE_TARGET"))
+    # the angles one message at a time (rotation.quaternion_to_euler, libm), as the vehicle and
+    # the scenarios compute them: the vectorised form (AttitudeCommand.roll) differs by an ulp
+    eul = np.array([quaternion_to_euler(qq)[:2] for qq in at.q]).reshape(-1, 2)
+    acted_roll = column(at.time_ms, eul[:, 0])
+    acted_pitch = column(at.time_ms, eul[:, 1])
     roll_cmd[:-1], pitch_cmd[:-1] = acted_roll[1:], acted_pitch[1:]
     roll_cmd[-1], pitch_cmd[-1] = acted_roll[-1], acted_pitch[-1]
-    if "SET_ATTITUDE_TARGET" in rec:
-        st = rec.tables["SET_ATTITUDE_TARGET"].from_sender(compid=COMPANION_COMPONENT)
-        j = np.nonzero(st["time_boot_ms"].astype(np.int64) == t_ms[-1])[0]
+    st = companion_commands(rec)
+    if st is not None:
+        j = np.nonzero(st.time_ms == t_ms[-1])[0]
         if len(j):
-            roll_cmd[-1], pitch_cmd[-1] = quaternion_to_euler(st["q"][j[0]])[:2]
+            roll_cmd[-1], pitch_cmd[-1] = quaternion_to_euler(st.q[j[0]])[:2]
     cols["roll_cmd_rad"], cols["pitch_cmd_rad"] = roll_cmd, pitch_cmd
     cols["hold"] = np.isnan(cols["est_vx_m_s"]).astype(float)
     return Run(name, cols, Path(path), {"profile": profile.value})

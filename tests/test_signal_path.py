@@ -205,6 +205,29 @@ def test_a_clipped_gyro_sample_is_unknown_everywhere(gust, gust_clipped, paper_c
     assert_array_equal(s.gyro_rad_s, ref.gyro_rad_s[keep])
 
 
+def _assert_runs_equal(a: Any, b: Any) -> None:
+    assert sorted(a.columns) == sorted(b.columns)
+    for key in a.columns:
+        assert_array_equal(a.columns[key], b.columns[key], err_msg=key)
+
+
+def test_recording_run_takes_every_gyro_message_and_the_vehicle_by_its_flow(gust, gust_scaled, gust_stray,
+                                                                             gust_clipped):
+    """simvehicle.server.recording_run reads the recording through companion.signals: a SCALED_IMU
+    gyro gives the RAW_IMU columns (it read RAW_IMU only: NaN); stray flow messages from another
+    system's autopilot component are not the vehicle's (it took component 1 of any system: the
+    first frame's counts were the stray message's); a clipped gyro sample is unknown (NaN)."""
+    clean = recording_run(gust)
+    assert np.all(np.isfinite(clean["gyro_x_rad_s"])) and np.all(np.isfinite(clean["flow_x_counts"]))
+    _assert_runs_equal(recording_run(gust_scaled), clean)
+    _assert_runs_equal(recording_run(gust_stray), clean)
+    clipped = recording_run(gust_clipped)
+    bad = np.isnan(clipped["gyro_x_rad_s"])
+    assert np.count_nonzero(bad) == len(clean["t_s"]) // 50
+    assert_array_equal(np.isnan(clipped["gyro_y_rad_s"]), bad)
+    assert_array_equal(clipped["gyro_x_rad_s"][~bad], clean["gyro_x_rad_s"][~bad])
+
+
 def _flow(sysids: list[int]) -> MessageTable:
     n = len(sysids)
     return MessageTable("OPTICAL_FLOW", np.arange(n, dtype=float), np.array(sysids, np.uint8), np.ones(n, np.uint8),
