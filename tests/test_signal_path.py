@@ -19,6 +19,7 @@ from numpy.testing import assert_array_equal
 from companion import signals
 from companion.columnar import MessageTable, Recording, vehicle_sysid
 from companion.config import Config, replace_section
+from companion.diagnose.channels import extract
 from companion.diagnose.diagnosis import diagnose
 from companion.profiles import Profile
 from companion.recording import load_recording
@@ -90,6 +91,23 @@ def gust_stray(gust) -> Path:
 
 
 @pytest.fixture(scope="module")
+def gust_vehicle_target(gust) -> Path:
+    """The gust flight with the companion's POSITION_TARGET_LOCAL_NED sent by the autopilot's
+    component (1) instead: a vehicle's position-controller target, not the companion's setpoint."""
+    enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def move(msg: Any) -> list[tuple[float, bytes]]:
+        if msg.get_type() != "POSITION_TARGET_LOCAL_NED":
+            return _same(msg)
+        new = enc.position_target_local_ned_encode(msg.time_boot_ms, msg.coordinate_frame, msg.type_mask, msg.x,
+                                                   msg.y, msg.z, msg.vx, msg.vy, msg.vz, msg.afx, msg.afy, msg.afz,
+                                                   msg.yaw, msg.yaw_rate)
+        return [(msg._timestamp, bytes(new.pack(enc)))]
+
+    return _rewrite(gust, gust.with_name("gust_vehicle_target.tlog"), move)
+
+
+@pytest.fixture(scope="module")
 def gust_scaled_stray_raw(gust_scaled) -> Path:
     """The SCALED_IMU gust flight with five RAW_IMU messages from another system (7) first: RAW_IMU
     comes first in the order of preference, but these are not the vehicle's gyro."""
@@ -107,9 +125,13 @@ def gust_scaled_stray_raw(gust_scaled) -> Path:
     return _rewrite(gust_scaled, gust_scaled.with_name("gust_scaled_stray_raw.tlog"), stray)
 
 
+#: the RAW_IMU samples (1-based) whose x gyro is set to its int16 limit in ``gust_clipped`` (8 s and 16 s)
+CLIPPED = (401, 801)
+
+
 @pytest.fixture(scope="module")
 def gust_clipped(gust) -> Path:
-    """The gust flight with the x gyro of every 50th RAW_IMU at its int16 limit (clipped)."""
+    """The gust flight with the x gyro of two RAW_IMU at its int16 limit (clipped)."""
     enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
     k = [0]
 
@@ -117,7 +139,7 @@ def gust_clipped(gust) -> Path:
         if msg.get_type() != "RAW_IMU":
             return _same(msg)
         k[0] += 1
-        x = 32767 if k[0] % 50 == 0 else msg.xgyro
+        x = 32767 if k[0] in CLIPPED else msg.xgyro
         new = enc.raw_imu_encode(msg.time_usec, msg.xacc, msg.yacc, msg.zacc, x, msg.ygyro, msg.zgyro, msg.xmag,
                                  msg.ymag, msg.zmag)
         return [(msg._timestamp, bytes(new.pack(enc)))]
@@ -181,21 +203,23 @@ def test_the_vehicle_is_the_most_frequent_flow_sender_everywhere(gust, gust_stra
 
 def test_another_systems_gyro_is_not_the_vehicles(gust, gust_scaled_stray_raw, paper_cfg):
     """Five RAW_IMU from system 7 beside the vehicle's SCALED_IMU: the analyses took the first gyro
-    message of the recording (RAW_IMU, none of it the vehicle's); they now take the vehicle's own
-    (companion.signals.gyro_sensor), and so see the RAW_IMU recording's signals."""
+    message of the recording (RAW_IMU, none of it the vehicle's: diagnose found no usable frame, the
+    sensor-only diagnosis an empty gyro); they now take the vehicle's own
+    (companion.signals.gyro_sensor), and so see the RAW_IMU recording's signals and say the same."""
     raw, rec = load_recording(gust), load_recording(gust_scaled_stray_raw)
     assert len(rec.table("RAW_IMU")) == 5 and set(rec.table("RAW_IMU").sysid.tolist()) == {7}
     _assert_replays_equal(replay(rec, paper_cfg, Profile.PAPER), replay(raw, paper_cfg, Profile.PAPER))
+    assert _report(rec, paper_cfg) == _report(raw, paper_cfg)
     _assert_series_equal(_series(rec, paper_cfg), _series(raw, paper_cfg))
 
 
 def test_a_clipped_gyro_sample_is_unknown_everywhere(gust, gust_clipped, paper_cfg):
     """An int16 mrad/s gyro field at 32767 has clipped: the rate is unknown. Replay (the live
     loop's rule) holds the frames aligned with such a sample; the sensor-only diagnosis leaves the
-    sample out (it read 32.8 rad/s)."""
+    sample out and the closed-loop diagnosis the frame it is nearest (both read 32.8 rad/s)."""
     clean, rec = load_recording(gust), load_recording(gust_clipped)
     n_clipped = int(np.count_nonzero(rec.table("RAW_IMU")["xgyro"] == 32767))
-    assert n_clipped == len(rec.table("RAW_IMU")) // 50
+    assert n_clipped == len(CLIPPED)
     res = replay(rec, paper_cfg, Profile.PAPER)
     assert np.count_nonzero(res["hold_cause"] == "GYRO_INVALID") == n_clipped
     s, ref = extract_series(rec, paper_cfg), extract_series(clean, paper_cfg)
@@ -203,6 +227,20 @@ def test_a_clipped_gyro_sample_is_unknown_everywhere(gust, gust_clipped, paper_c
     assert np.abs(s.gyro_rad_s).max() < 30.0
     keep = np.isin(ref.gyro_t_s, s.gyro_t_s)
     assert_array_equal(s.gyro_rad_s, ref.gyro_rad_s[keep])
+    d, ref_d = extract(rec, paper_cfg), extract(clean, paper_cfg)
+    assert d.n == ref_d.n - n_clipped and np.abs(d.gyro_x_rad_s).max() < 30.0
+    kept = np.isin(ref_d.t_s, d.t_s)
+    assert_array_equal(d.gyro_x_rad_s, ref_d.gyro_x_rad_s[kept])
+    assert_array_equal(np.diff(d.seg) != 0, np.diff(np.flatnonzero(kept)) != 1)  # split where a frame went
+
+
+def test_a_vehicles_position_target_is_not_the_companions_setpoint(gust, gust_vehicle_target, paper_cfg):
+    """POSITION_TARGET_LOCAL_NED is the companion's (component 191, CONVENTIONS.md); diagnose took
+    anyone's when the companion sent none, replay and the recording run only the companion's."""
+    d = extract(load_recording(gust_vehicle_target), paper_cfg)
+    assert np.all(np.isnan(d.vx_set_m_s)) and np.all(np.isnan(d.vy_set_m_s))
+    assert np.all(np.isnan(recording_run(gust_vehicle_target)["vx_set_m_s"]))
+    assert np.any(np.isfinite(extract(load_recording(gust), paper_cfg).vx_set_m_s))
 
 
 def _assert_runs_equal(a: Any, b: Any) -> None:
@@ -223,7 +261,7 @@ def test_recording_run_takes_every_gyro_message_and_the_vehicle_by_its_flow(gust
     _assert_runs_equal(recording_run(gust_stray), clean)
     clipped = recording_run(gust_clipped)
     bad = np.isnan(clipped["gyro_x_rad_s"])
-    assert np.count_nonzero(bad) == len(clean["t_s"]) // 50
+    assert np.count_nonzero(bad) == len(CLIPPED)
     assert_array_equal(np.isnan(clipped["gyro_y_rad_s"]), bad)
     assert_array_equal(clipped["gyro_x_rad_s"][~bad], clean["gyro_x_rad_s"][~bad])
 

@@ -14,6 +14,10 @@ The flow is turned into scene-angle increments in the paper's convention by the 
 (``companion.profiles``): ``dphi_x``, ``dphi_y`` (rad) over the frame that ends at t_k.
 LOCAL_POSITION_NED is read for plots only (``truth_vx_m_s``), never for fitting.
 
+The signals, their sender (the vehicle: the most frequent flow sender; the companion: component
+191), time fields, units and gyro message (the vehicle's gyro as one sensor: the first of RAW_IMU,
+SCALED_IMU, HIGHRES_IMU it sent), come from ``companion.signals``, as replay's do.
+
 Frames are grouped into segments of contiguous valid frames (no gap longer than 1.5 frames, every
 channel valid, a command present). Times are seconds from the first record of the recording.
 """
@@ -25,13 +29,21 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.columnar import vehicle_sysid
 from companion.config import Config
 from companion.errors import RecordingError
-from companion.mavlink_ids import COMPANION_COMPONENT, DOWNWARD
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, Profile, detect_profile, flow_columns
-from companion.recording import MessageTable, Recording
-from companion.rotation import quaternions_to_euler
+from companion.recording import Recording
+from companion.signals import (
+    companion_commands,
+    companion_table,
+    downward_range,
+    gyro_sensor,
+    vehicle_attitude,
+    vehicle_id,
+    vehicle_table,
+    vehicle_targets,
+)
+from companion.signals import time_s as message_time_s
 
 #: a segment shorter than this is not used (s)
 MIN_SEGMENT_S = 5.0
@@ -178,15 +190,6 @@ def _nearest(t_query: np.ndarray, t: np.ndarray, tol_s: float) -> np.ndarray:
     return pick
 
 
-def _from_vehicle(tab: MessageTable, sysid: int) -> MessageTable:
-    return tab.select((tab.sysid == sysid) & (tab.compid != COMPANION_COMPONENT))
-
-
-def _boot_offset(tab: MessageTable, boot_s: np.ndarray) -> float:
-    """log time - boot time (s), median over the table: maps sensor times to log times."""
-    return float(np.median(tab.t_s - boot_s))
-
-
 def missing_channels(rec: Recording, profile: str) -> list[str]:
     """The messages diagnosis needs that the recording lacks (CONVENTIONS.md, Recordings)."""
     missing = []
@@ -204,9 +207,7 @@ def missing_channels(rec: Recording, profile: str) -> list[str]:
 
 def has_commands(rec: Recording) -> bool:
     """True when the recording holds a commanded attitude (companion or vehicle target)."""
-    if "SET_ATTITUDE_TARGET" in rec and np.any(rec.tables["SET_ATTITUDE_TARGET"].compid == COMPANION_COMPONENT):
-        return True
-    return "ATTITUDE_TARGET" in rec
+    return companion_commands(rec) is not None or "ATTITUDE_TARGET" in rec
 
 
 # ---------------------------------------------------------------------------------------------
@@ -217,7 +218,8 @@ def _sessions(rec: Recording, flow_name: str, sysid: int, prof: Profile, q: floa
     """The recording cut into boot sessions: a flow time that steps back by more than
     ``REBOOT_BACKSTEP_S`` in file order is a reboot (logs kept across reboots, or concatenated).
     Each session holds the records from its first flow frame to the next session's."""
-    of = _from_vehicle(rec.tables[flow_name], sysid)
+    of = vehicle_table(rec, flow_name, sysid)
+    assert of is not None  # the vehicle is the flow's most frequent sender
     order = np.argsort(of.record, kind="stable")
     tb = np.asarray(flow_columns(of, prof, q).time_s, float)[order]
     back = np.flatnonzero(np.diff(tb) < -REBOOT_BACKSTEP_S) + 1
@@ -301,7 +303,7 @@ def extract(rec: Recording, cfg: Config, profile: str | None = None) -> FlightDa
     if missing:
         raise RecordingError(f"{name}: missing {', '.join(missing)} (needed to diagnose a closed-loop flight)")
     flow_name = FLOW_MESSAGE[prof]
-    sysid = vehicle_sysid(rec.tables[flow_name])
+    sysid = vehicle_id(rec, prof)
     sessions = _sessions(rec, flow_name, sysid, prof, cfg.flow_sensor.q_rad_per_count)
     parts = []
     for sess in sessions:
@@ -411,8 +413,8 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
     bridge = MAX_BRIDGE_S
 
     # flow frames
-    of = _from_vehicle(rec.tables[flow_name], sysid)
-    if len(of) == 0:
+    of = vehicle_table(rec, flow_name, sysid)
+    if of is None:
         raise RecordingError(f"{name}: no {flow_name} frames from the vehicle")
     fc = flow_columns(of, prof, cfg.flow_sensor.q_rad_per_count)
     bx_all = np.broadcast_to(np.asarray(fc.body_x_rad_s, float), np.shape(fc.time_s))
@@ -452,10 +454,12 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
         body_y = _interp_gapped(tb, tr[ok_b], byr[ok_b], bridge)
 
     # attitude estimate (a cubic through slower or gapped samples)
-    at = _from_vehicle(rec.tables["ATTITUDE"], sysid)
-    att_t, roll, pitch, yaw = _sorted_unique(np.asarray(at["time_boot_ms"], float) * 1e-3,
-                                             np.asarray(at["roll"], float), np.asarray(at["pitch"], float),
-                                             np.unwrap(np.asarray(at["yaw"], float)))
+    at = vehicle_attitude(rec, sysid)
+    if at is None:
+        e = np.zeros(0)
+        att_t = roll = pitch = yaw = e
+    else:
+        att_t, roll, pitch, yaw = _sorted_unique(at.time_s, at.roll, at.pitch, np.unwrap(at.yaw))
     roll_k = _interp_gapped(tb, att_t, roll, bridge, cubic=CUBIC)
     pitch_k = _interp_gapped(tb, att_t, pitch, bridge, cubic=CUBIC)
     yaw_k = _interp_gapped(tb, att_t, yaw, bridge)
@@ -483,36 +487,30 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
     brk[1:] = np.diff(tb) > bridge + 0.5 * T
 
     # gyro
-    gname = next(g for g in GYRO_MESSAGES if g in rec)
-    gtab = _from_vehicle(rec.tables[gname], sysid)
-    scale = GYRO_MESSAGES[gname]
-    gtime = "time_usec" if "time_usec" in gtab.fields else "time_boot_ms"
-    gscale = 1e-6 if gtime == "time_usec" else 1e-3
-    gt, gx, gy = _sorted_unique(np.asarray(gtab[gtime], float) * gscale, np.asarray(gtab["xgyro"], float) * scale,
-                                np.asarray(gtab["ygyro"], float) * scale)
-    gyro_x = _interp_gapped(tb, gt, gx, bridge)
-    gyro_y = _interp_gapped(tb, gt, gy, bridge)
+    gyro = gyro_sensor(rec, sysid)
+    scale = GYRO_MESSAGES[gyro.names[0]] if gyro.names else 1.0
+    gt, gx, gy = _sorted_unique(gyro.time_s, gyro.x_rad_s, gyro.y_rad_s)
+    # a clipped sample is unknown (NaN): not bridged over, a frame whose nearest sample it is is not trusted
+    near = _nearest(tb, gt, bridge)
+    unknown = (near >= 0) & ~(np.isfinite(gx) & np.isfinite(gy))[np.maximum(near, 0)]
+    gyro_x = np.where(unknown, np.nan, _interp_gapped(tb, gt, gx, bridge))
+    gyro_y = np.where(unknown, np.nan, _interp_gapped(tb, gt, gy, bridge))
     gyro_rec = _recorded(tb, gt, 0.5 * T)
 
     # range (downward only; outside the sensor's own limits is invalid)
-    ds = _from_vehicle(rec.tables["DISTANCE_SENSOR"], sysid)
-    ds = ds.select(np.asarray(ds["orientation"]) == DOWNWARD)
-    if len(ds) == 0:
+    ds = downward_range(rec, sysid)
+    if ds is None:
         raise RecordingError(f"{name}: no DISTANCE_SENSOR facing down (orientation 25)")
-    cur = np.asarray(ds["current_distance"], float)
-    ok = (cur >= np.asarray(ds["min_distance"], float)) & (cur <= np.asarray(ds["max_distance"], float))
-    rt, rr = _sorted_unique(np.asarray(ds["time_boot_ms"], float) * 1e-3, np.where(ok, cur * 0.01, np.nan))
+    rt, rr = _sorted_unique(ds.time_s, ds.range_m)
     range_m = _interp_gapped(tb, rt[np.isfinite(rr)], rr[np.isfinite(rr)], bridge)
     # a frame whose nearest reading is an invalid one is not trusted either
     near = _nearest(tb, rt, bridge)
     range_m[(near < 0) | ~np.isfinite(rr[np.maximum(near, 0)])] = np.nan
 
     # command active over [t_k, t_k+1]
-    sat = rec.tables.get("SET_ATTITUDE_TARGET")
-    if sat is not None and len(sat) and np.any(sat.compid == COMPANION_COMPONENT):
-        sat = sat.select(sat.compid == COMPANION_COMPONENT)
-        ct, q = _sorted_unique(np.asarray(sat["time_boot_ms"], float) * 1e-3, np.asarray(sat["q"], float))
-        cr, cp, _ = quaternions_to_euler(np.reshape(q, (-1, 4)))
+    sat = companion_commands(rec)
+    if sat is not None:
+        ct, cr, cp = _sorted_unique(sat.time_s, sat.roll, sat.pitch)
         # the command computed from frame k carries frame k's time and acts from frame k+1
         j = _nearest(tb, ct, 0.4 * T)
         rec_k = j >= 0
@@ -528,9 +526,11 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
         cmd_rec[1:] = rec_k[:-1]
         source = "SET_ATTITUDE_TARGET (companion), active from the next frame"
     else:
-        atg = _from_vehicle(rec.tables["ATTITUDE_TARGET"], sysid)
-        ct, q = _sorted_unique(np.asarray(atg["time_boot_ms"], float) * 1e-3, np.asarray(atg["q"], float))
-        cr, cp, _ = quaternions_to_euler(np.reshape(q, (-1, 4)))
+        atg = vehicle_targets(rec, sysid)
+        if atg is None:
+            ct = cr = cp = np.zeros(0)
+        else:
+            ct, cr, cp = _sorted_unique(atg.time_s, atg.roll, atg.pitch)
         roll_u = _interp_gapped(tb, ct, cr, bridge)
         pitch_u = _interp_gapped(tb, ct, cp, bridge)
         cmd_rec = _recorded(tb, ct, 0.6 * T)
@@ -539,25 +539,20 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
     # velocity setpoint (informative)
     vx_set = np.full(n, np.nan)
     vy_set = np.full(n, np.nan)
-    pt = rec.tables.get("POSITION_TARGET_LOCAL_NED")
-    if pt is not None and len(pt):
-        pt = pt.select(pt.compid == COMPANION_COMPONENT) if np.any(pt.compid == COMPANION_COMPONENT) else pt
-        if len(pt):
-            ptt, pvx, pvy = _sorted_unique(np.asarray(pt["time_boot_ms"], float) * 1e-3,
-                                           np.asarray(pt["vx"], float), np.asarray(pt["vy"], float))
-            j = _nearest(tb, ptt, 0.6 * T)
-            vx_set = np.where(j >= 0, pvx[np.maximum(j, 0)], np.nan)
-            vy_set = np.where(j >= 0, pvy[np.maximum(j, 0)], np.nan)
+    pt = companion_table(rec, "POSITION_TARGET_LOCAL_NED")  # the companion's: the setpoint it tracked
+    if pt is not None:
+        ptt, pvx, pvy = _sorted_unique(message_time_s(pt), np.asarray(pt["vx"], float), np.asarray(pt["vy"], float))
+        j = _nearest(tb, ptt, 0.6 * T)
+        vx_set = np.where(j >= 0, pvx[np.maximum(j, 0)], np.nan)
+        vy_set = np.where(j >= 0, pvy[np.maximum(j, 0)], np.nan)
 
     # truth, for plots only
     tvx = np.full(n, np.nan)
     tvy = np.full(n, np.nan)
-    lp = rec.tables.get("LOCAL_POSITION_NED")
-    if lp is not None and len(lp):
-        lp = _from_vehicle(lp, sysid)
+    lp = vehicle_table(rec, "LOCAL_POSITION_NED", sysid)
+    if lp is not None:
         if len(lp) > 1:
-            lt, lvx, lvy = _sorted_unique(np.asarray(lp["time_boot_ms"], float) * 1e-3,
-                                          np.asarray(lp["vx"], float), np.asarray(lp["vy"], float))
+            lt, lvx, lvy = _sorted_unique(message_time_s(lp), np.asarray(lp["vx"], float), np.asarray(lp["vy"], float))
             vn = _interp(tb, lt, lvx, 0.2)
             ve = _interp(tb, lt, lvy, 0.2)
             c, s = np.cos(yaw_k), np.sin(yaw_k)
