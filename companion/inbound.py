@@ -14,11 +14,18 @@ from typing import Any
 
 from companion.core import CompanionCore, StepOutput
 from companion.mavlink_ids import BODY_FRAMES, COMPANION_COMPONENT, DOWNWARD, MAV_COMP_ID_ALL, MAV_FRAME_LOCAL_NED
-from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FlowColumns, Profile, flow_scalar
+from companion.profiles import (
+    FLOW_MESSAGE,
+    GYRO_MESSAGES,
+    INT16_CLIP,
+    TIME_FIELDS,
+    FlowColumns,
+    Profile,
+    flow_scalar,
+)
 
 #: POSITION_TARGET type_mask bits: vx, vy ignored (a position or acceleration target)
 VELOCITY_IGNORED = 0b11000
-INT16_CLIP = 32767  # RAW_IMU / SCALED_IMU gyro fields (mrad/s) at this magnitude have clipped
 
 
 def scalar_flow(msg: Any, profile: Profile, q_rad_per_count: float) -> FlowColumns:
@@ -27,10 +34,10 @@ def scalar_flow(msg: Any, profile: Profile, q_rad_per_count: float) -> FlowColum
 
 
 def gyro_time_s(msg: Any) -> float:
-    """Sensor time of a gyro message, s: RAW_IMU / HIGHRES_IMU carry ``time_usec``, SCALED_IMU
-    only ``time_boot_ms``."""
-    t_us = getattr(msg, "time_usec", None)
-    return t_us * 1e-6 if t_us is not None else msg.time_boot_ms * 1e-3
+    """Sensor time of a gyro message, s, from its own time field (``profiles.TIME_FIELDS``, the
+    rule recordings are read by too): RAW_IMU / HIGHRES_IMU ``time_usec``, SCALED_IMU ``time_boot_ms``."""
+    name, scale = TIME_FIELDS[msg.get_type()]
+    return getattr(msg, name) * scale
 
 
 @dataclass

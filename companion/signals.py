@@ -10,19 +10,20 @@ here, so that each rule below is written once. What each tool then does with the
 (``vehicle_table``), as the live ``MessageRouter`` takes them. The companion's are those of
 component 191 (``COMPANION_COMPONENT``; ``companion_table``), whichever system it uses.
 
-**Which time field.** Each message's own (``TIME_FIELDS``; CONVENTIONS.md): RAW_IMU and
-HIGHRES_IMU ``time_usec`` (us), SCALED_IMU ``time_boot_ms``, DISTANCE_SENSOR, ATTITUDE,
-ATTITUDE_TARGET, SET_ATTITUDE_TARGET, LOCAL_POSITION_NED and POSITION_TARGET_LOCAL_NED
-``time_boot_ms`` (ms), VISION_SPEED_ESTIMATE ``usec``; the flow message's by the sensor profile
-(``profiles.flow_columns``: ArduPilot fills OPTICAL_FLOW ``time_usec`` with milliseconds).
-``time_s`` gives seconds, ``time_ms`` the whole milliseconds the messages are matched on.
+**Which time field.** Each message's own (``profiles.TIME_FIELDS``, the live loop's too;
+CONVENTIONS.md): RAW_IMU and HIGHRES_IMU ``time_usec`` (us), SCALED_IMU ``time_boot_ms``,
+DISTANCE_SENSOR, ATTITUDE, ATTITUDE_TARGET, SET_ATTITUDE_TARGET, LOCAL_POSITION_NED and
+POSITION_TARGET_LOCAL_NED ``time_boot_ms`` (ms), VISION_SPEED_ESTIMATE ``usec``; the flow
+message's by the sensor profile (``profiles.flow_columns``: ArduPilot fills OPTICAL_FLOW
+``time_usec`` with milliseconds). ``time_s`` gives seconds, ``time_ms`` the whole milliseconds
+the messages are matched on.
 
 **Which unit conversion.** Gyro: RAW_IMU and SCALED_IMU mrad/s, HIGHRES_IMU rad/s
-(``profiles.GYRO_MESSAGES``) -> rad/s; an int16 mrad/s field at its limit (``INT16_CLIP``) has
-clipped and the rate is unknown: NaN (the live loop's rule). Accelerometer: milli-g, HIGHRES_IMU
-m/s^2 -> m/s^2. DISTANCE_SENSOR: cm -> m, only orientation 25 (facing down) is altitude, a
-reading outside the sensor's own [min, max] is invalid. Attitude quaternions -> roll, pitch
-(``rotation.quaternions_to_euler``).
+(``profiles.GYRO_MESSAGES``) -> rad/s; an int16 mrad/s field at its limit
+(``profiles.INT16_CLIP``) has clipped and the rate is unknown: NaN (the live loop's rule,
+``inbound.MessageRouter``). Accelerometer: milli-g, HIGHRES_IMU m/s^2 -> m/s^2. DISTANCE_SENSOR:
+cm -> m, only orientation 25 (facing down) is altitude, a reading outside the sensor's own
+[min, max] is invalid. Attitude quaternions -> roll, pitch (``rotation.quaternions_to_euler``).
 
 **Which gyro message.** Every gyro message of the contract: RAW_IMU, SCALED_IMU, HIGHRES_IMU
 (``profiles.GYRO_MESSAGES``, in order of preference), and the flow message's own body rates
@@ -43,24 +44,17 @@ import numpy as np
 from companion.columnar import MessageTable, Recording, vehicle_sysid
 from companion.importers.common import GRAVITY_M_S2
 from companion.mavlink_ids import COMPANION_COMPONENT, DOWNWARD
-from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FlowColumns, Profile, flow_columns
+from companion.profiles import (
+    FLOW_MESSAGE,
+    GYRO_MESSAGES,
+    INT16_CLIP,
+    TIME_FIELDS,
+    FlowColumns,
+    Profile,
+    flow_columns,
+)
 from companion.rotation import quaternions_to_euler
 
-#: each message's own time field and its unit in seconds
-TIME_FIELDS: dict[str, tuple[str, float]] = {
-    "RAW_IMU": ("time_usec", 1e-6),
-    "HIGHRES_IMU": ("time_usec", 1e-6),
-    "SCALED_IMU": ("time_boot_ms", 1e-3),
-    "DISTANCE_SENSOR": ("time_boot_ms", 1e-3),
-    "ATTITUDE": ("time_boot_ms", 1e-3),
-    "ATTITUDE_TARGET": ("time_boot_ms", 1e-3),
-    "SET_ATTITUDE_TARGET": ("time_boot_ms", 1e-3),
-    "LOCAL_POSITION_NED": ("time_boot_ms", 1e-3),
-    "POSITION_TARGET_LOCAL_NED": ("time_boot_ms", 1e-3),
-    "VISION_SPEED_ESTIMATE": ("usec", 1e-6),
-}
-#: RAW_IMU / SCALED_IMU gyro fields (int16, mrad/s) at this magnitude have clipped: the rate is unknown
-INT16_CLIP = 32767
 #: accelerometer field unit -> m/s^2: milli-g (ArduPilot's and PX4's RAW_IMU, SCALED_IMU), HIGHRES_IMU m/s^2
 ACCEL_M_S2 = {"RAW_IMU": GRAVITY_M_S2 * 1e-3, "SCALED_IMU": GRAVITY_M_S2 * 1e-3, "HIGHRES_IMU": 1.0}
 

@@ -21,7 +21,8 @@ from companion.columnar import MessageTable, Recording, vehicle_sysid
 from companion.config import Config, replace_section
 from companion.diagnose.channels import extract
 from companion.diagnose.diagnosis import diagnose
-from companion.profiles import Profile
+from companion.inbound import gyro_time_s
+from companion.profiles import GYRO_MESSAGES, Profile
 from companion.recording import load_recording
 from companion.replay import replay
 from companion.sensor_diagnose import extract_series
@@ -365,3 +366,19 @@ def test_signals_senders_range_and_commands():
     assert est is not None
     assert_array_equal(signals.time_ms(est), [40, 41])
     assert signals.companion_table(rec, "DISTANCE_SENSOR") is None
+
+
+def test_the_live_loop_reads_a_gyro_message_by_the_same_rules():
+    """The live router (one message) and companion.signals (columns) share the time-field table,
+    the units and the clip limit (profiles.TIME_FIELDS, GYRO_MESSAGES, INT16_CLIP)."""
+    enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    msgs = [enc.raw_imu_encode(1_234_567, 0, 0, -1000, 25, -40, 3, 0, 0, 0),
+            enc.scaled_imu_encode(1234, 0, 0, -1000, 25, -40, 3, 0, 0, 0),
+            enc.highres_imu_encode(1_234_567, 0.0, 0.0, -9.8, 0.025, -0.04, 0.003, 0, 0, 0, 0, 0, 0, 0, 0)]
+    for m in msgs:
+        m = mav.MAVLink(None).decode(bytearray(m.pack(enc)))
+        name = m.get_type()
+        table = _table(name, [0], **{k: np.array([getattr(m, k)]) for k in m.get_fieldnames()})
+        assert gyro_time_s(m) == signals.time_s(table)[0]
+        g = signals.GyroSamples([table])
+        assert (g.x_rad_s[0], g.y_rad_s[0]) == (m.xgyro * GYRO_MESSAGES[name], m.ygyro * GYRO_MESSAGES[name])
