@@ -36,8 +36,8 @@ def scalar_flow(msg: Any, profile: Profile, q_rad_per_count: float) -> FlowColum
 def gyro_time_s(msg: Any) -> float:
     """Sensor time of a gyro message, s, from its own time field (``profiles.TIME_FIELDS``, the
     rule recordings are read by too): RAW_IMU / HIGHRES_IMU ``time_usec``, SCALED_IMU ``time_boot_ms``."""
-    name, scale = TIME_FIELDS[msg.get_type()]
-    return getattr(msg, name) * scale
+    name, factor, scale = TIME_FIELDS[msg.get_type()]
+    return getattr(msg, name) * factor * scale
 
 
 @dataclass

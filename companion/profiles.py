@@ -45,20 +45,23 @@ FLOW_MESSAGE = {
 GYRO_MESSAGES = {"RAW_IMU": 1e-3, "SCALED_IMU": 1e-3, "HIGHRES_IMU": 1.0}
 #: RAW_IMU / SCALED_IMU gyro fields (int16, mrad/s) at this magnitude have clipped: the rate is unknown
 INT16_CLIP = 32767
-#: each message's own time field and its unit in seconds (CONVENTIONS.md), the one time-field rule
-#: of the live loop (``inbound``) and of recordings (``companion.signals``); the flow message's
-#: depends on the profile (``flow_columns``: ArduPilot fills OPTICAL_FLOW ``time_usec`` with ms)
-TIME_FIELDS: dict[str, tuple[str, float]] = {
-    "RAW_IMU": ("time_usec", 1e-6),
-    "HIGHRES_IMU": ("time_usec", 1e-6),
-    "SCALED_IMU": ("time_boot_ms", 1e-3),
-    "DISTANCE_SENSOR": ("time_boot_ms", 1e-3),
-    "ATTITUDE": ("time_boot_ms", 1e-3),
-    "ATTITUDE_TARGET": ("time_boot_ms", 1e-3),
-    "SET_ATTITUDE_TARGET": ("time_boot_ms", 1e-3),
-    "LOCAL_POSITION_NED": ("time_boot_ms", 1e-3),
-    "POSITION_TARGET_LOCAL_NED": ("time_boot_ms", 1e-3),
-    "VISION_SPEED_ESTIMATE": ("usec", 1e-6),
+#: each message's own time field (CONVENTIONS.md), the one time-field rule of the live loop
+#: (``inbound``) and of recordings (``companion.signals``): (field, factor, scale), the time in s
+#: is ``value * factor * scale``. A gyro's time goes through whole microseconds (SCALED_IMU's
+#: ``time_boot_ms`` x 1000), so that one instant has one time whichever gyro message told it
+#: (``ms * 1e-3`` and ``us * 1e-6`` differ in the last bit for 2 in 5 instants). The flow
+#: message's depends on the profile (``flow_columns``: ArduPilot fills OPTICAL_FLOW ``time_usec`` with ms).
+TIME_FIELDS: dict[str, tuple[str, int, float]] = {
+    "RAW_IMU": ("time_usec", 1, 1e-6),
+    "HIGHRES_IMU": ("time_usec", 1, 1e-6),
+    "SCALED_IMU": ("time_boot_ms", 1000, 1e-6),
+    "DISTANCE_SENSOR": ("time_boot_ms", 1, 1e-3),
+    "ATTITUDE": ("time_boot_ms", 1, 1e-3),
+    "ATTITUDE_TARGET": ("time_boot_ms", 1, 1e-3),
+    "SET_ATTITUDE_TARGET": ("time_boot_ms", 1, 1e-3),
+    "LOCAL_POSITION_NED": ("time_boot_ms", 1, 1e-3),
+    "POSITION_TARGET_LOCAL_NED": ("time_boot_ms", 1, 1e-3),
+    "VISION_SPEED_ESTIMATE": ("usec", 1, 1e-6),
 }
 
 
@@ -229,7 +232,7 @@ def detect_profile(rec: Recording) -> tuple[str, str]:
 
 
 #: messages whose time field gives a live vehicle's clock, and the field's scale to microseconds
-_CLOCK_FIELDS = {m: (TIME_FIELDS[m][0], TIME_FIELDS[m][1] * 1e6)
+_CLOCK_FIELDS = {m: (TIME_FIELDS[m][0], 1e3 if TIME_FIELDS[m][0] == "time_boot_ms" else 1.0)
                  for m in ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "ATTITUDE", "DISTANCE_SENSOR")}
 #: OPTICAL_FLOW time_usec / the vehicle's clock in µs: microseconds in [lo, hi], milliseconds in [lo, hi] / 1000
 _SAME_UNIT = (0.5, 2.0)

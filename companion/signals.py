@@ -15,8 +15,9 @@ CONVENTIONS.md): RAW_IMU and HIGHRES_IMU ``time_usec`` (us), SCALED_IMU ``time_b
 DISTANCE_SENSOR, ATTITUDE, ATTITUDE_TARGET, SET_ATTITUDE_TARGET, LOCAL_POSITION_NED and
 POSITION_TARGET_LOCAL_NED ``time_boot_ms`` (ms), VISION_SPEED_ESTIMATE ``usec``; the flow
 message's by the sensor profile (``profiles.flow_columns``: ArduPilot fills OPTICAL_FLOW
-``time_usec`` with milliseconds). ``time_s`` gives seconds, ``time_ms`` the whole milliseconds
-the messages are matched on.
+``time_usec`` with milliseconds). ``time_s`` gives seconds (a gyro's through whole
+microseconds: one instant, one time, whichever gyro message told it), ``time_ms`` the whole
+milliseconds the messages are matched on.
 
 **Which unit conversion.** Gyro: RAW_IMU and SCALED_IMU mrad/s, HIGHRES_IMU rad/s
 (``profiles.GYRO_MESSAGES``) -> rad/s; an int16 mrad/s field at its limit
@@ -106,15 +107,16 @@ def companion_table(rec: Recording, name: str, fields: Sequence[str] | None = No
 def time_s(table: MessageTable) -> np.ndarray:
     """Each message's own time (``TIME_FIELDS``), s (float64). Not for the flow message, whose
     time field depends on the profile (``profiles.flow_columns``)."""
-    name, scale = TIME_FIELDS[table.name]
-    return np.asarray(table[name], dtype=float) * scale
+    name, factor, scale = TIME_FIELDS[table.name]
+    value = np.asarray(table[name], dtype=float)
+    return (value if factor == 1 else value * factor) * scale
 
 
 def time_ms(table: MessageTable) -> np.ndarray:
     """Each message's own time as whole milliseconds (int64), the key messages are matched on:
     a ``time_boot_ms`` as it is, a microsecond field rounded to the millisecond."""
-    name, scale = TIME_FIELDS[table.name]
-    if scale == 1e-3:
+    name = TIME_FIELDS[table.name][0]
+    if name == "time_boot_ms":
         return np.asarray(table[name], dtype=np.int64)
     return np.round(np.asarray(table[name], dtype=float) * 1e-3).astype(np.int64)
 

@@ -310,7 +310,7 @@ def test_signals_every_gyro_message_in_si_units_on_its_own_time_field():
     raw = _table("RAW_IMU", [0, 3], time_usec=np.array([1_000_000, 1_040_000], np.uint64),
                  xgyro=np.array([25, 32767], i16), ygyro=np.array([-40, 1], i16), zgyro=np.array([3, -32767], i16),
                  xacc=np.array([0, 10], i16), yacc=np.array([0, 0], i16), zacc=np.array([-1000, -1000], i16))
-    scaled = _table("SCALED_IMU", [1], time_boot_ms=np.array([1020], np.uint32), xgyro=np.array([25], i16),
+    scaled = _table("SCALED_IMU", [1], time_boot_ms=np.array([1021], np.uint32), xgyro=np.array([25], i16),
                     ygyro=np.array([-40], i16), zgyro=np.array([3], i16))
     highres = _table("HIGHRES_IMU", [2], time_usec=np.array([1_030_000], np.uint64),
                      xgyro=np.array([0.025], np.float32), ygyro=np.array([-0.04], np.float32),
@@ -324,8 +324,9 @@ def test_signals_every_gyro_message_in_si_units_on_its_own_time_field():
     g = signals.gyro_as_received(rec, 1)
     assert g.names == ("RAW_IMU", "SCALED_IMU", "HIGHRES_IMU")
     assert_array_equal(g.record, [0, 1, 2, 3])
-    np.testing.assert_allclose(g.time_s, [1.0, 1.02, 1.03, 1.04], rtol=0, atol=1e-12)
-    assert_array_equal(g.time_ms, [1000, 1020, 1030, 1040])
+    np.testing.assert_allclose(g.time_s, [1.0, 1.021, 1.03, 1.04], rtol=0, atol=1e-12)
+    assert_array_equal(g.time_ms, [1000, 1021, 1030, 1040])
+    assert g.time_s[1] == 1_021_000 * 1e-6 != 1021 * 1e-3  # through microseconds: a RAW_IMU's time of that instant
     np.testing.assert_allclose(g.x_rad_s[:3], 0.025, rtol=0, atol=1e-8)
     np.testing.assert_allclose(g.y_rad_s[:3], -0.04, rtol=0, atol=1e-8)
     assert np.isnan(g.x_rad_s[3]) and np.isnan(g.y_rad_s[3]) and np.isnan(g.z_rad_s[3])  # clipped
@@ -372,13 +373,14 @@ def test_the_live_loop_reads_a_gyro_message_by_the_same_rules():
     """The live router (one message) and companion.signals (columns) share the time-field table,
     the units and the clip limit (profiles.TIME_FIELDS, GYRO_MESSAGES, INT16_CLIP)."""
     enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
-    msgs = [enc.raw_imu_encode(1_234_567, 0, 0, -1000, 25, -40, 3, 0, 0, 0),
-            enc.scaled_imu_encode(1234, 0, 0, -1000, 25, -40, 3, 0, 0, 0),
-            enc.highres_imu_encode(1_234_567, 0.0, 0.0, -9.8, 0.025, -0.04, 0.003, 0, 0, 0, 0, 0, 0, 0, 0)]
+    msgs = [enc.raw_imu_encode(1_235_000, 0, 0, -1000, 25, -40, 3, 0, 0, 0),
+            enc.scaled_imu_encode(1235, 0, 0, -1000, 25, -40, 3, 0, 0, 0),
+            enc.highres_imu_encode(1_235_000, 0.0, 0.0, -9.8, 0.025, -0.04, 0.003, 0, 0, 0, 0, 0, 0, 0, 0)]
     for m in msgs:
         m = mav.MAVLink(None).decode(bytearray(m.pack(enc)))
         name = m.get_type()
         table = _table(name, [0], **{k: np.array([getattr(m, k)]) for k in m.get_fieldnames()})
-        assert gyro_time_s(m) == signals.time_s(table)[0]
+        assert gyro_time_s(m) == signals.time_s(table)[0] == 1_235_000 * 1e-6  # one instant, one time
         g = signals.GyroSamples([table])
         assert (g.x_rad_s[0], g.y_rad_s[0]) == (m.xgyro * GYRO_MESSAGES[name], m.ygyro * GYRO_MESSAGES[name])
+    assert 1235 * 1e-3 != 1_235_000 * 1e-6  # (which the milliseconds alone would not give)
