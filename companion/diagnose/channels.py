@@ -54,7 +54,8 @@ MAX_BRIDGE_S = 0.6
 REBOOT_BACKSTEP_S = 1.0
 CUBIC = True
 _FLAGS = ("flow_rec", "att_rec", "gyro_rec", "cmd_rec")
-_OPTIONAL = ("flow_body_x_rad_s", "flow_body_y_rad_s")
+_OPTIONAL = ("flow_body_x_rad_s", "flow_body_y_rad_s", "gyro_angle_x_rad", "gyro_angle_y_rad", "gyro_fine_x_rad_s",
+             "gyro_fine_y_rad_s")
 _ARRAYS = ("t_s", "dt_s", "seg", "dphi_x_rad", "dphi_y_rad", "gyro_x_rad_s", "gyro_y_rad_s", "range_m", "roll_rad",
            "pitch_rad", "yaw_rad", "roll_cmd_rad", "pitch_cmd_rad", "vx_set_m_s", "vy_set_m_s", "truth_vx_m_s",
            "truth_vy_m_s")
@@ -107,6 +108,13 @@ class FlightData:
     #: PX4: integrated gyro / integration time), sampled with the flow; None when it has none
     flow_body_x_rad_s: np.ndarray | None = None
     flow_body_y_rad_s: np.ndarray | None = None
+    #: the gyro's integral (rad, from an arbitrary start per run of samples) and the gyro (rad/s)
+    #: at the frames, both from a cubic spline through the gyro's samples at their own times
+    #: (``gyro_spline``); None when not computed
+    gyro_angle_x_rad: np.ndarray | None = None
+    gyro_angle_y_rad: np.ndarray | None = None
+    gyro_fine_x_rad_s: np.ndarray | None = None
+    gyro_fine_y_rad_s: np.ndarray | None = None
     att_rec: np.ndarray = None  # type: ignore[assignment]
     gyro_rec: np.ndarray = None  # type: ignore[assignment]
     cmd_rec: np.ndarray = None  # type: ignore[assignment]
@@ -276,6 +284,37 @@ def _interp_gapped(t_query: np.ndarray, t: np.ndarray, y: np.ndarray, max_gap_s:
     return out
 
 
+def gyro_spline(t_query: np.ndarray, t: np.ndarray, y: np.ndarray, max_gap_s: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(integral, value) at ``t_query`` of the cubic spline through the samples (t, y), per run of
+    samples no further apart than ``max_gap_s`` (the integral from the run's first sample; NaN
+    outside the runs).
+
+    Why: the rotation the flow sees is the exact integral of the body rate. A gyro put on the flow's
+    frame grid by linear interpolation and integrated by the trapezoid attenuates what it samples
+    at high frequency (by (wT)^2/12 and by the interpolation's own averaging: about 1 % at 3 Hz
+    and 50 Hz), which reads as a rotation gain, a flow scale or a lever arm of 1-2 % in a flight
+    that oscillates; the spline through the samples at their own times is exact to fourth order."""
+    from scipy.interpolate import CubicSpline
+
+    ok = np.isfinite(y)
+    t, y = t[ok], y[ok]
+    ang = np.full(len(t_query), np.nan)
+    val = np.full(len(t_query), np.nan)
+    if len(t) < 4:
+        return ang, val
+    cuts = np.flatnonzero(np.diff(t) > max_gap_s) + 1
+    for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(t)]]), strict=True):
+        if b - a < 4:
+            continue
+        sp = CubicSpline(t[a:b], y[a:b])
+        lo, hi = np.searchsorted(t_query, t[a]), np.searchsorted(t_query, t[b - 1], side="right")
+        tq = t_query[lo:hi]
+        ang[lo:hi] = sp.antiderivative()(tq)
+        val[lo:hi] = sp(tq)
+    return ang, val
+
+
 def _recorded(t_query: np.ndarray, t: np.ndarray, tol_s: float) -> np.ndarray:
     return _nearest(t_query, t, tol_s) >= 0
 
@@ -375,8 +414,8 @@ def _concat(parts: list[FlightData]) -> FlightData:
     seg0 = 0
     notes: list[str] = []
     shifted = False
-    body = all(p.flow_body_x_rad_s is not None for p in parts)
-    pieces: dict[str, list[np.ndarray]] = {k: [] for k in (*_ARRAYS, *_FLAGS, *(_OPTIONAL if body else ()))}
+    optional = [k for k in _OPTIONAL if all(getattr(p, k) is not None for p in parts)]
+    pieces: dict[str, list[np.ndarray]] = {k: [] for k in (*_ARRAYS, *_FLAGS, *optional)}
     for p in parts:
         if p.n == 0:
             continue
@@ -496,6 +535,8 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
     gyro_x = np.where(unknown, np.nan, _interp_gapped(tb, gt, gx, bridge))
     gyro_y = np.where(unknown, np.nan, _interp_gapped(tb, gt, gy, bridge))
     gyro_rec = _recorded(tb, gt, 0.5 * T)
+    gang_x, gfine_x = (np.where(unknown, np.nan, v) for v in gyro_spline(tb, gt, gx, bridge))
+    gang_y, gfine_y = (np.where(unknown, np.nan, v) for v in gyro_spline(tb, gt, gy, bridge))
 
     # range (downward only; outside the sensor's own limits is invalid)
     ds = downward_range(rec, sysid)
@@ -574,4 +615,5 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
         gyro_resolution_rad_s=(1e-3 if scale == 1e-3 else 0.0) / np.sqrt(12.0),
         flow_resolution_rad=(cfg.flow_sensor.q_rad_per_count if prof is Profile.PAPER else 0.0) / np.sqrt(12.0),
         flow_rec=flow_rec, att_rec=att_rec, gyro_rec=gyro_rec, cmd_rec=cmd_rec,
-        flow_body_x_rad_s=body_x, flow_body_y_rad_s=body_y)
+        flow_body_x_rad_s=body_x, flow_body_y_rad_s=body_y, gyro_angle_x_rad=gang_x, gyro_angle_y_rad=gang_y,
+        gyro_fine_x_rad_s=gfine_x, gyro_fine_y_rad_s=gfine_y)

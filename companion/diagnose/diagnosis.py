@@ -24,6 +24,7 @@ from companion.diagnose.channels import FlightData, extract
 from companion.diagnose.explain import explain
 from companion.diagnose.flowmodel import IDX, FlowProblem
 from companion.diagnose.groups import (
+    GEOMETRY_EFFECTS,
     FlowGroupState,
     GyroProblem,
     attitude_group,
@@ -281,8 +282,17 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
     # the flow is compared with the rotation of the gyro above 1 Hz, undone of the lag found
     lag = float(results["gyro"].final.p[2]) if "gyro_lag" in results["gyro"].chosen else 0.0
     t = time.perf_counter()
+    notes = list(data.notes)
     gf, fp, fstate = flow_group(data, cfg, gyro_lag_s=lag)
     results["flow"] = _fit_group(gf, settings, t0)
+    if any(e in GEOMETRY_EFFECTS for e in results["flow"].chosen):
+        # the effects' regressors are exact to first order about their anchor (the nominal model):
+        # with a large geometry effect chosen (a 12 deg yaw, a 20 % scale), its second-order share
+        # would be fitted as another effect, so the group is built again about the chosen model and
+        # the selection rerun from there (``FlowProblem.anchor``)
+        data.notes[:] = notes
+        gf, fp, fstate = flow_group(data, cfg, gyro_lag_s=lag, p_anchor=results["flow"].final.p)
+        results["flow"] = _fit_group(gf, settings, t0)
     timings["flow_s"] = time.perf_counter() - t
     step(STAGES[3])
     ap.final_p = results["attitude"].final.p

@@ -282,25 +282,27 @@ class FlowProblem:
         self._flow_offset: np.ndarray | None = None
         self._force_offset: np.ndarray | None = None
 
-    def anchor(self, base: FlowProblem) -> None:
-        """Take the nominal residual from ``base`` (the same flight, its rotation from another
-        source) and only the change with the parameters from this problem:
+    def anchor(self, base: FlowProblem, p_anchor: np.ndarray | None = None) -> None:
+        """Take the residual at ``p_anchor`` (the nominal when None) from ``base`` (the same flight,
+        its rotation from another source) and only the change with the parameters from this problem:
 
-            r(p) = r_base(NOMINAL) + [r_self(p) - r_self(NOMINAL)]
+            r(p) = r_base(p_anchor) + [r_self(p) - r_self(p_anchor)]
 
         Why: the residual compared with the rotation of a noisy source holds that source's noise,
         and so does every regressor (rotation gain, delay, lever arm, scale) built from the same
         source: errors in variables, which a least-squares fit reads as a rotation gain below 1, a
         delay, a scale, however many held-out folds confirm it (they share the noise too). With the
         regressors from a source whose noise is independent of the residual's, noise cannot make an
-        effect; a real one still shows (both sources see the true rotation). At the nominal
-        parameters nothing changes."""
+        effect; a real one still shows (both sources see the true rotation). At the anchor
+        nothing changes; away from it the change is exact to first order, so the anchor is moved to
+        the chosen model once one is found (``groups.flow_group``)."""
         if base.flow.idx.shape != self.flow.idx.shape or base.force.idx.shape != self.force.idx.shape:
             raise ValueError("anchor: the two problems must share their windows")
+        p_a = NOMINAL if p_anchor is None else p_anchor
         self._flow_offset = None
         self._force_offset = None
-        self._flow_offset = base.flow_residual(NOMINAL) - self.flow_residual(NOMINAL)
-        self._force_offset = base.force_residual(NOMINAL) - self.force_residual(NOMINAL)
+        self._flow_offset = base.flow_residual(p_a) - self.flow_residual(p_a)
+        self._force_offset = base.force_residual(p_a) - self.force_residual(p_a)
 
     # -- model pieces --------------------------------------------------------------------------
 

@@ -284,7 +284,7 @@ def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0,
     attitude holds it too: errors in variables, read as a rotation gain, a delay or a lever arm.
     The gyro has the high-frequency rotation; a bias becomes a constant after the high-pass (gone
     in every difference); a gyro low-pass (``gyro_lag`` from the gyro group) is undone first,
-    gyro + tau gyro'. None when the gyro is not recorded at the frame rate (then the attitude)."""
+    integral(gyro) + tau (gyro - gyro(0)). None when the gyro is not recorded at the frame rate (then the attitude)."""
     if np.mean(data.gyro_rec) < 0.75:
         return None
     from scipy import signal as sg
@@ -292,16 +292,27 @@ def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0,
     fs = 1.0 / data.frame_s
     b, a = sg.butter(2, crossover_hz / (0.5 * fs))
     out = []
-    for ang, gyr in ((data.pitch_rad, data.gyro_y_rad_s), (data.roll_rad, data.gyro_x_rad_s)):
+    for ang, gyr, gang, gfine in ((data.pitch_rad, data.gyro_y_rad_s, data.gyro_angle_y_rad, data.gyro_fine_y_rad_s),
+                                  (data.roll_rad, data.gyro_x_rad_s, data.gyro_angle_x_rad, data.gyro_fine_x_rad_s)):
         fused = np.array(ang, dtype=float)
         for a0, b0 in data.segments():
             if b0 - a0 < 30:
                 continue
             t = data.t_s[a0:b0]
             g = gyr[a0:b0]
+            if gang is not None and gfine is not None and np.all(np.isfinite(gang[a0:b0])) \
+                    and np.all(np.isfinite(gfine[a0:b0])):
+                # the integral of a spline through the gyro's own samples (``channels.gyro_spline``)
+                G = gang[a0:b0] - gang[a0]
+                g = gfine[a0:b0]
+            else:
+                G = np.concatenate([[0.0], np.cumsum(0.5 * (g[1:] + g[:-1]) * np.diff(t))])
             if gyro_lag_s > 0:
-                g = g + gyro_lag_s * np.gradient(g, t)
-            G = np.concatenate([[0.0], np.cumsum(0.5 * (g[1:] + g[:-1]) * np.diff(t))])
+                # the body rate is g + tau g', so the angle is the integral of g plus tau (g - g0):
+                # exact, where a derivative of the samples (central differences, then the
+                # trapezoid) averages g over neighbouring frames and undoes too little of the lag
+                # at high frequency (a rotation gain or a flow scale of 1-2 % that is not there)
+                G = G + gyro_lag_s * (g - g[0])
             fused[a0:b0] = G + sg.filtfilt(b, a, ang[a0:b0] - G)
         out.append(fused)
     return out[0], out[1]
@@ -312,25 +323,37 @@ def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0,
 VELOCITY_CROSSOVER_HZ = 0.2
 
 
-def regressor_scene_angle(base: FlowProblem, rotation: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """A scene angle (2, n) for the effects' regressors: the rotation ``rotation`` minus the
-    translation of a velocity that follows the flow's odometry (``base`` at the nominal geometry)
-    below ``VELOCITY_CROSSOVER_HZ`` and the integral of the tilt (of ``rotation``) above it (zero phase).
+def regressor_scene_angle(base: FlowProblem, rotation: tuple[np.ndarray, np.ndarray],
+                          p_anchor: np.ndarray | None = None) -> np.ndarray:
+    """A scene angle (2, n) for the effects' regressors: what the sensor would report, under the
+    geometry of ``p_anchor`` (the nominal when None), for the rotation ``rotation`` and a velocity
+    that follows the flow's odometry (``base`` under that geometry) below ``VELOCITY_CROSSOVER_HZ``
+    and the integral of the tilt (of ``rotation``) above it (zero phase).
 
     Why: every effect that scales the flow velocity (flow scale, range offset, and drag through
     the velocity) has the flow velocity as its regressor in the force balance, and the measured
     flow's noise (counts, quantization, rotation compensation) sits in both that regressor and the
     residual: errors in variables, fitted as a scale below 1 or a positive range offset that
     shrink the noise. Above the crossover the tilt gives the velocity's changes without the flow's
-    noise (and without the unexplained forces, turbulence among them, that the loop answers)."""
+    noise (and without the unexplained forces, turbulence among them, that the loop answers).
+
+    Why the geometry: the odometry below the crossover is the measured flow read through the
+    anchor's geometry, the tilt's velocity above it is in body axes; the synthetic flow must be
+    the same sensor's reading at both frequencies, or reading it through a geometry far from the
+    nominal (a yaw of 12 deg, a scale of 1.2) treats the two parts differently, and the
+    difference, second order in the geometry (1 - cos 12 deg = 2 %), is fitted as a flow scale."""
     from scipy import signal as sg
 
     data = base.data
-    X, _ = base.flow_velocity(NOMINAL)
+    p_a = NOMINAL if p_anchor is None else p_anchor
+    X, _ = base.flow_velocity(p_a)
     fs = 1.0 / data.frame_s
     b, a = sg.butter(2, VELOCITY_CROSSOVER_HZ / (0.5 * fs))
     phi = np.zeros((2, data.n))
     t = data.t_s
+    kx, ky, yaw, delay, offset = (float(p_a[IDX[k]]) for k in ("scale_x", "scale_y", "yaw", "delay", "offset"))
+    gain, rz = float(p_a[IDX["gain"]]), float(p_a[IDX["rz"]])
+    c, s = math.cos(yaw), math.sin(yaw)
     for a0, b0 in data.segments():
         if b0 - a0 < 2:
             continue
@@ -345,11 +368,18 @@ def regressor_scene_angle(base: FlowProblem, rotation: tuple[np.ndarray, np.ndar
             v = vt + sg.filtfilt(b, a, v - vt, axis=1)
         xf = np.concatenate([np.zeros((2, 1)), np.cumsum(0.5 * (v[:, 1:] + v[:, :-1]) * np.diff(ts), axis=1)],
                             axis=1)
-        y = np.concatenate([np.zeros((2, 1)), np.cumsum(np.diff(xf, axis=1) / base._Amid[a0:b0 - 1], axis=1)],
-                           axis=1)
-        for i in (0, 1):
-            r = AXIS_SIGN[i] * (rotation[i][a0:b0] - rotation[i][a0])
-            phi[i, a0:b0] = r - y[i]
+        y = np.concatenate([np.zeros((2, 1)), np.cumsum(np.diff(xf, axis=1) / (base._Amid[a0:b0 - 1] - offset),
+                                                        axis=1)], axis=1)
+        # body-axis scene angle under the anchor's geometry (``FlowProblem.flow_velocity`` inverted)
+        rot = np.stack([AXIS_SIGN[i] * (rotation[i][a0:b0] - rotation[i][a0]) for i in (0, 1)])
+        body = gain * rot - y
+        if rz != 0.0:  # a lever arm's translation, integral(dR / A) (``FlowProblem.RA``)
+            body = body + rz * np.concatenate([np.zeros((2, 1)), np.cumsum(np.diff(rot, axis=1) / base._Amid[a0:b0 - 1],
+                                                                             axis=1)], axis=1)
+        sens = np.stack([(c * body[0] + s * body[1]) / kx, (-s * body[0] + c * body[1]) / ky])
+        if delay != 0.0:  # the sensor reports the scene angle of ``delay`` earlier
+            sens = np.stack([np.interp(ts - delay, ts, sens[i]) for i in (0, 1)])
+        phi[:, a0:b0] = sens
     return phi
 
 
@@ -428,7 +458,16 @@ def _flow_noise(fp: FlowProblem) -> float:
     return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else math.inf
 
 
-def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0) -> tuple[Group, FlowProblem, FlowGroupState]:
+#: the parameters of the flow's geometry (those ``FlowProblem.flow_velocity`` reads): the ones an
+#: anchor (``FlowProblem.anchor``) is moved to
+GEOMETRY = ("scale_x", "scale_y", "yaw", "delay", "offset", "gain", "rz")
+#: the effects that free them
+GEOMETRY_EFFECTS = ("flow_scale", "flow_yaw_misalignment", "flow_delay", "range_offset", "flow_rotation_gain",
+                    "flow_lever_arm")
+
+
+def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor: np.ndarray | None = None
+               ) -> tuple[Group, FlowProblem, FlowGroupState]:
     """The flow group, its rotation taken from the source that explains the recorded flow better:
     the attitude estimate, or the gyro fused with it (``rotation_angles``). The flow sees the true
     rotation, so the source nearer the truth leaves the smaller nominal residual; which one was
@@ -463,12 +502,16 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0) -> tuple[
     if regressor is None:
         regressor = (data.pitch_rad, data.roll_rad)
         what = "the attitude estimate"
-    fp = FlowProblem(data, rotation_angles=regressor, scene_angle=regressor_scene_angle(base, regressor), **kw)
-    fp.anchor(base)
+    p_a = NOMINAL.copy()
+    if p_anchor is not None:  # only the geometry: the forces do not enter the regressors
+        geo = [IDX[k] for k in GEOMETRY]
+        p_a[geo] = p_anchor[geo]
+    fp = FlowProblem(data, rotation_angles=regressor, scene_angle=regressor_scene_angle(base, regressor, p_a), **kw)
+    fp.anchor(base, p_a)
     data.notes.append(f"the flow effects' regressors: rotation from {what}, velocity from the tilt above "
                       f"{VELOCITY_CROSSOVER_HZ:g} Hz and the flow below (their noise is not the residual's)")
     state = FlowGroupState(fp)
-    e0 = base.flow_residual(NOMINAL)
+    e0 = base.flow_residual(p_a)
     whiten = state.whiten = [ar_whitener(e0[0]), ar_whitener(e0[1])]
     state.n_flow_rows = fp.flow.idx.shape[0] * max(fp.flow.idx.shape[1] - WHITEN_ORDER, 0)
 
