@@ -127,21 +127,101 @@ MAX_GAP_S = 0.5
 CLOCK_RESTART_S = 1.0
 #: attitude samples kept (5 s at 50 Hz; a fusion horizon is never more than MAX_GAP_S behind)
 ATTITUDE_HISTORY = 256
+SQRT3 = math.sqrt(3.0)
+#: counts: no hypothesis gives the frame's count this much probability: the phase is lost (``_Axis._fuse_counts``)
+PHASE_LOST = 1e-9
+#: the smallest probability whose logarithm is taken
+TINY = 1e-300
+
+
+def _phi(t: float) -> float:
+    return math.exp(-0.5 * t * t) * 0.3989422804014327
+
+
+def _cdf(t: float) -> float:
+    return 0.5 * math.erfc(-t * 0.7071067811865476)
+
+
+def _box_integrals(lo: float, hi: float, c: float, s: float) -> tuple[float, float, float]:
+    """The integrals of ``x^n Phi((x - c) / s)`` over [``lo``, ``hi``], n = 0, 1, 2."""
+    out = [0.0, 0.0, 0.0]
+    for sign, x in ((-1.0, lo), (1.0, hi)):
+        t = (x - c) / s
+        cdf, pdf = _cdf(t), _phi(t)
+        g0 = t * cdf + pdf
+        g1 = 0.5 * ((t * t - 1.0) * cdf + t * pdf)
+        g2 = (t * t * t * cdf + (t * t + 2.0) * pdf) / 3.0
+        out[0] += sign * s * g0
+        out[1] += sign * (s * c * g0 + s * s * g1)
+        out[2] += sign * (s * c * c * g0 + 2.0 * s * s * c * g1 + s * s * s * g2)
+    return out[0], out[1], out[2]
+
+
+def boxed_moments(mu: float, h: float, sd: float, lo: float, hi: float) -> tuple[float, float, float]:
+    """A uniform over [``mu - h``, ``mu + h``] plus independent Gaussian noise of standard deviation
+    ``sd``, restricted to [``lo``, ``hi``]: (the probability it lies there, its mean and its
+    variance there). The prior of a quantizer's running rounding error (``_Axis._fuse_counts``):
+    uniform over what the counts so far allow, moved by a Gaussian increment; closed form from
+    the integrals of the normal distribution function. Mass 0 when the two do not meet."""
+    a, b = lo - mu, hi - mu  # centred on the prior's mean
+    if sd <= 1e-4 * h:  # the uniform alone (its edges blurred by less than 1e-4 of its width)
+        x0, x1 = max(a, -h), min(b, h)
+        if not x1 > x0:
+            return 0.0, mu, 0.0
+        return (x1 - x0) / (2.0 * h), mu + 0.5 * (x0 + x1), (x1 - x0) ** 2 / 12.0 + sd * sd
+    if h <= 1e-4 * sd:  # the Gaussian alone (a truncated normal)
+        sd = math.sqrt(sd * sd + h * h / 3.0)
+        al, be = a / sd, b / sd
+        if al > 0.0:  # both bounds above the mean: the upper tails, for accuracy
+            z = 0.5 * (math.erfc(al * 0.7071067811865476) - math.erfc(be * 0.7071067811865476))
+        else:
+            z = _cdf(be) - _cdf(al)
+        if not z > 0.0:
+            return 0.0, mu, 0.0
+        pa, pb = _phi(al), _phi(be)
+        m = (pa - pb) / z
+        return z, mu + sd * m, sd * sd * max(1.0 + (al * pa - be * pb) / z - m * m, 0.0)
+    lo0, lo1, lo2 = _box_integrals(a, b, -h, sd)
+    hi0, hi1, hi2 = _box_integrals(a, b, h, sd)
+    m0, m1, m2 = lo0 - hi0, lo1 - hi1, lo2 - hi2  # times 2h
+    if not m0 > 0.0:
+        return 0.0, mu, 0.0
+    mean = m1 / m0
+    if abs(mean) < 1e-12 * (hi - lo):  # below the integrals' rounding: a bound symmetric about the mean
+        mean = 0.0
+    return m0 / (2.0 * h), mu + mean, max(m2 / m0 - mean * mean, 0.0)
+
+
+def bound_moments(mu: float, h: float, sd: float, lo: float, hi: float) -> tuple[float, float, float]:
+    """``boxed_moments``, and where the bound holds nothing of the prediction to double precision
+    (far in a tail) the Gaussian tail's beyond the nearer bound: mean ``sd^2 / D`` inside it,
+    standard deviation the same, ``D`` the distance from the uniform's edge (mass 0)."""
+    mass, mean, var = boxed_moments(mu, h, sd, lo, hi)
+    if mass > 0.0:
+        return mass, mean, var
+    sd = max(sd, 1e-6 * (hi - lo))
+    if mu + h < lo:
+        tail = sd * sd / (lo - mu - h)
+        return 0.0, lo + tail, tail * tail
+    tail = sd * sd / (mu - h - hi)
+    return 0.0, hi - tail, tail * tail
 
 
 @dataclass(frozen=True)
 class KalmanSettings:
     """The velocity filter's noise model and timing, bound once from a ``Config`` and profile.
 
-    Measurement (eq. 15, per axis): ``v + (range / span) (e_k - e_(k-1)) + w``. ``e_k`` is frame
-    k's quantization error (rad) for sensors that report counts (eq. 10: the count is the floor of
-    the accumulated angle, so a frame's error is the difference of two and a run of frames is
-    exact to one count), uniform over one count: ``quantization_rad`` = Q / sqrt 12, 0 for rates
-    and radians. ``w`` is white, of variance ``range^2 * flow_noise_rad_s^2`` plus the range
-    error's share ``(v * range_noise_m / range)^2``, ``flow_noise_rad_s`` the gyro's white noise
-    when the config says it has some; the white noise measured on the recording (second
-    differences of eq. 15 over ``NOISE_AVERAGE_S``, less the quantization's share) replaces it
-    when larger. Process: white acceleration of PSD ``(g ATTITUDE_NOISE_RAD)^2 T`` on the
+    Measurement (eq. 15, per axis): ``v + (range / span) (e_k - e_(k-1)) + w``. ``e_k`` is, for
+    sensors that report counts, the running sum's rounding error after frame k (rad; eq. 10: the
+    count is the floor of the accumulated angle, so a frame's error is the difference of two and
+    a run of frames is exact to one count): within half a count of its cell's centre, ``|e_k| <=
+    Q / 2``, ``quantization_rad`` = Q / sqrt 12 the standard deviation of a uniform over one
+    count; 0 for rates and radians. ``w`` is white, of variance ``range^2 * flow_noise_rad_s^2``
+    plus the range error's share ``(v * range_noise_m / range)^2``, ``flow_noise_rad_s`` the
+    gyro's white noise when the config says it has some; for rates and radians the white noise
+    measured on the recording (second differences of eq. 15 over ``NOISE_AVERAGE_S``) replaces it
+    when larger (the second differences of counts are the quantizer's own pattern, not white
+    noise). Process: white acceleration of PSD ``(g ATTITUDE_NOISE_RAD)^2 T`` on the
     velocity, a random walk of PSD ``DISTURBANCE_DRIFT_M_S2^2 / DISTURBANCE_DRIFT_S`` on the
     disturbance and ``DRAG_DRIFT_PER_S_SQRT_S^2`` on the drag rate, and steps in the disturbance
     at ``step_rate_per_s`` of 1 sigma ``step_sigma_m_s2``. Timing: the flow sample is half its
@@ -194,22 +274,26 @@ class KalmanSettings:
 
 class _Axis:
     """One axis: state (v, b, c, e) = velocity m/s, disturbance acceleration m/s^2, drag rate 1/s
-    and the last fused frame's quantization error rad (0 and fixed without counts), with
-    ``v' = a_tilt + b - c v``; P symmetric 4x4 as its ten entries.
+    and, for counts, the running sum's rounding error after the last fused frame, rad (0 and
+    fixed without counts), with ``v' = a_tilt + b - c v``; P symmetric 4x4 as its ten entries.
 
-    ``steps`` holds the candidate steps in ``b``, one per prediction interval of the last
-    ``STEP_WINDOW_S``, each ``[dv, db, dc, de, d, info, log_prior]``: the error a unit step
-    starting in that interval has left in (v, b, c, e) after the filter's own updates (Willsky and
-    Jones' signature), the sum over the innovations since of signature x innovation / its
-    variance (``d``) and of signature^2 / variance (``info``), and the log of the step's prior
-    probability there. ``mix`` is the posterior after the last update: per candidate (probability,
-    step size m/s^2, its variance). Diagnostics: ``nu``, ``nu_var`` the last innovation and its
-    variance, ``p_step`` the probability of a step in the window, ``steps_found`` the steps taken
-    into the state."""
+    The candidate steps in ``b``, one per prediction interval of the last ``STEP_WINDOW_S``:
+    rates and radians (linear measurements): ``steps``, each ``[dv, db, dc, de, d, info,
+    log_prior]``, the error a unit step starting in that interval has left in (v, b, c, e) after
+    the filter's own updates (Willsky and Jones' signature), the sum over the innovations since of
+    signature x innovation / its variance (``d``) and of signature^2 / variance (``info``), and
+    the log of the step's prior probability there; ``mix`` the posterior after the last update:
+    per candidate (probability, step size m/s^2, its variance). Counts (a bound, not a linear
+    measurement: ``_fuse_counts``): ``bank``, one filter per candidate (an ``_Axis`` begun from
+    this one with the step's prior added, ``_onset``), its ``logw`` the log of its prior times
+    its likelihood of the counts since against no step's, ``weights`` the posterior. Diagnostics:
+    ``nu``, ``nu_var`` the last innovation and its variance (counts: the Gaussian measurement
+    equivalent to the bound), ``p_step`` the probability of a step in the window, ``steps_found``
+    the steps taken into the state."""
 
     __slots__ = ("v", "b", "c", "e", "p00", "p01", "p02", "p03", "p11", "p12", "p13", "p22", "p23", "p33",
                  "ready", "steps", "mix", "z1", "z2", "t1", "t2", "r_data", "n_data", "nu", "nu_var", "p_step",
-                 "steps_found")
+                 "steps_found", "bank", "weights", "logw")
 
     def __init__(self, s: KalmanSettings) -> None:
         self.b = 0.0
@@ -220,6 +304,7 @@ class _Axis:
         self.r_data = math.nan
         self.n_data = 0
         self.steps_found = 0
+        self.logw = 0.0
         self.restart(s)
 
     def unlink(self, s: KalmanSettings) -> None:
@@ -227,6 +312,10 @@ class _Axis:
         self.e = 0.0
         self.p03 = self.p13 = self.p23 = 0.0
         self.p33 = s.quantization_rad ** 2
+        for st in self.steps:
+            st[3] = 0.0
+        for hyp in self.bank:
+            hyp.unlink(s)
 
     def restart(self, s: KalmanSettings) -> None:
         """Forget the velocity (the next measurement sets it); keep the disturbance and drag."""
@@ -235,6 +324,8 @@ class _Axis:
         self.ready = False
         self.steps: list[list[float]] = []
         self.mix: list[tuple[float, float, float]] = []
+        self.bank: list[_Axis] = []
+        self.weights: list[float] = []
         self.nu = self.nu_var = math.nan
         self.p_step = 0.0
         self.z1 = self.z2 = self.t1 = self.t2 = math.nan
@@ -249,9 +340,9 @@ class _Axis:
         self.e, self.p03, self.p13, self.p23, self.p33 = 0.0, -g * q2, 0.0, 0.0, q2
         self.ready = True
 
-    def predict(self, accel_integral: float, dt: float, s: KalmanSettings) -> None:
+    def predict(self, accel_integral: float, dt: float, s: KalmanSettings, search: bool = True) -> None:
         """Over ``dt`` s with the tilt acceleration's integral ``accel_integral`` (m/s); a new
-        candidate step starts in this interval."""
+        candidate step starts in this interval (``search``: this is the no-step state)."""
         if dt <= 0.0:
             return
         v, b, c = self.v, self.b, self.c
@@ -269,19 +360,55 @@ class _Axis:
         self.p03 = f0 * self.p03 + f1 * self.p13 + f2 * self.p23
         self.p11 = p11 + qb * dt
         self.p22 = p22 + s.drag_psd * dt
-        if s.step_rate_per_s > 0.0:
-            steps = self.steps
-            for st in steps:
-                st[0] = f0 * st[0] + f1 * st[1] + f2 * st[2]
-            # a unit step at a time uniform over this interval: half of it in v on average
-            steps.append([0.5 * dt, 1.0, 0.0, 0.0, 0.0, 0.0, math.log(s.step_rate_per_s * dt)])
-            if len(steps) > max(1, round(STEP_WINDOW_S / s.nominal_frame_s)):
-                del steps[0]
+        if not search or s.step_rate_per_s <= 0.0:
+            return
+        window = max(1, round(STEP_WINDOW_S / s.nominal_frame_s))
+        if s.quantization_rad > 0.0:  # counts: a filter per candidate (``_fuse_counts``)
+            bank = self.bank
+            for hyp in bank:
+                hyp.predict(accel_integral, dt, s, search=False)
+            bank.append(self._onset(dt, s))
+            if len(bank) > window:
+                del bank[0]
+            return
+        steps = self.steps
+        for st in steps:
+            st[0] = f0 * st[0] + f1 * st[1] + f2 * st[2]
+        # a unit step at a time uniform over this interval: half of it in v on average
+        steps.append([0.5 * dt, 1.0, 0.0, 0.0, 0.0, 0.0, math.log(s.step_rate_per_s * dt)])
+        if len(steps) > window:
+            del steps[0]
+
+    def _onset(self, dt: float, s: KalmanSettings) -> _Axis:
+        """Counts: the hypothesis that a step began in the last ``dt``: this state with a step of
+        N(0, step_sigma^2) m/s^2 at a time uniform over the interval (its second moments: b by
+        step_sigma^2, v by step_sigma^2 dt^2 / 3, their covariance step_sigma^2 dt / 2), and the
+        log of its prior probability as its weight."""
+        h = object.__new__(_Axis)
+        for name in ("v", "b", "c", "e", "p00", "p01", "p02", "p03", "p11", "p12", "p13", "p22", "p23", "p33",
+                     "ready", "z1", "z2", "t1", "t2", "r_data", "n_data", "nu", "nu_var", "p_step", "steps_found"):
+            setattr(h, name, getattr(self, name))
+        h.steps, h.mix, h.bank, h.weights = [], [], [], []
+        var = s.step_sigma_m_s2 ** 2
+        h.p00 += var * dt * dt / 3.0
+        h.p01 += var * dt / 2.0
+        h.p11 += var
+        h.logw = math.log(s.step_rate_per_s * dt)
+        return h
 
     def fuse(self, z: float, r: float, g: float, s: KalmanSettings) -> None:
-        """Update with eq. 15, ``z = v + g (e' - e) + w``: ``e'`` this frame's quantization error
-        (rad, new), ``e`` the last frame's (the state's), ``g`` = range / span (m/s per rad), ``w``
-        white of variance ``r`` (m^2/s^2); then the candidate steps."""
+        """Update with eq. 15 of one frame, ``z = v + g (e' - e) + w``: ``e'`` this frame's
+        quantization error (rad), ``e`` the last frame's (the state's), ``g`` = range / span (m/s
+        per rad), ``w`` white of variance ``r`` (m^2/s^2); then the candidate steps. Rates and
+        radians: ``_fuse_white``; counts: ``_fuse_counts``."""
+        if s.quantization_rad > 0.0:
+            self._fuse_counts(z, r, g, s)
+        else:
+            self._fuse_white(z, r, g, s)
+
+    def _fuse_white(self, z: float, r: float, g: float, s: KalmanSettings) -> None:
+        """Rates and radians: the linear Kalman update (``e`` is 0 and stays 0; the algebra keeps
+        ``e'`` as an error independent of the state, the counts' model before the bound)."""
         q2 = s.quantization_rad ** 2
         # P H' over (v, b, c, e, e'), H = [1, 0, 0, -g, g]
         u0 = self.p00 - g * self.p03
@@ -321,9 +448,87 @@ class _Axis:
         if self._posterior(s) > 0.5:
             self._take_step()
 
+    def _fuse_counts(self, z: float, r: float, g: float, s: KalmanSettings) -> None:
+        """Counts: ``e'`` is not a new unknown but the running sum's rounding error, ``e' = e +
+        (z - v - w) / g`` (the scene moved by what the frame's count and rotation say, less the
+        sum's new rounding), and all the frame tells is that it lies within one count, ``|e'| <=
+        Q / 2`` (eq. 9-11). Each hypothesis, no step (this state) and a step begun in each
+        interval of the window (``bank``, one filter each), takes the bound by moment matching on
+        its own prediction of ``e'`` (``_bound``): a bound the prediction lies within tells
+        nothing, however often it is applied, so the counts of a slow motion are read once, not
+        once a frame. A hypothesis' weight grows by its prediction's probability of the bound
+        against no step's: the count's exact likelihood under it. A count no hypothesis gives a
+        chance (``PHASE_LOST``): the phase is lost (a slip), ``e`` goes back to its prior."""
+        hyps = [self, *self.bank]
+        half = s.quantization_rad * SQRT3  # half a count, rad
+        priors = [hyp._bound_prior(z, r, g, half) for hyp in hyps]
+        if max(pr[4] for pr in priors) < PHASE_LOST:
+            self.unlink(s)
+            priors = [hyp._bound_prior(z, r, g, half) for hyp in hyps]
+        log0 = math.log(max(priors[0][4], TINY))
+        for hyp, pr in zip(hyps, priors, strict=True):
+            hyp._bound(pr, g)
+            hyp.logw += math.log(max(pr[4], TINY)) - log0
+        self.logw = 0.0
+        if self.bank and self._posterior(s) > 0.5:
+            self._take_step()
+
+    def _bound_prior(self, z: float, r: float, g: float, half: float) -> tuple[float, ...]:
+        """This state's prediction of the running rounding error ``e' = e + (z - v - w) / g`` and
+        the bound |e'| <= ``half`` on it: (its mean, its covariances with v, b, c, its variance,
+        the bound's probability, the posterior mean and variance). Its prediction: ``e``'s own
+        part (what the velocity does not explain) uniform, the rest Gaussian (``bound_moments``)."""
+        inv_g = 1.0 / g
+        mu = self.e + (z - self.v) * inv_g
+        c0 = self.p03 - self.p00 * inv_g
+        c1 = self.p13 - self.p01 * inv_g
+        c2 = self.p23 - self.p02 * inv_g
+        var = self.p33 - self.p03 * inv_g - c0 * inv_g + r * inv_g * inv_g
+        own = min(self.p33, var)  # e's own part (the phase the counts so far allow) as uniform
+        h, sd = math.sqrt(3.0 * own), math.sqrt(var - own)
+        if abs(mu) + h + 9.0 * sd < half:  # wholly within the bound (to 1e-19): it tells nothing
+            return mu, c0, c1, c2, 1.0, mu, var, var
+        mass, mean, post = bound_moments(mu, h, sd, -half, half)
+        return mu, c0, c1, c2, mass, mean, min(post, var), var
+
+    def _bound(self, pr: tuple[float, ...], g: float) -> None:
+        """Take the bound (``_bound_prior``'s ``pr``): the linear regression on ``e'`` moves
+        (v, b, c) by its posterior mean's shift and shrinks their covariance by its variance's;
+        ``e'`` becomes the state's ``e``. The innovation diagnostics are the Gaussian measurement
+        of ``e'`` that does the same (expectation propagation's site), in eq. 15's units."""
+        mu, c0, c1, c2, _, mean, post, var = pr
+        gain = (mean - mu) / var
+        shrink = (var - post) / (var * var)
+        self.v += c0 * gain
+        self.b += c1 * gain
+        self.c += c2 * gain
+        self.e = mean
+        self.p00 -= c0 * c0 * shrink
+        self.p01 -= c0 * c1 * shrink
+        self.p02 -= c0 * c2 * shrink
+        self.p11 -= c1 * c1 * shrink
+        self.p12 -= c1 * c2 * shrink
+        self.p22 -= c2 * c2 * shrink
+        keep = post / var
+        self.p03, self.p13, self.p23, self.p33 = c0 * keep, c1 * keep, c2 * keep, post
+        if post < var * (1.0 - 1e-12) and post > 0.0:
+            r_site = 1.0 / (1.0 / post - 1.0 / var)
+            self.nu, self.nu_var = -g * (mean - mu) * (var + r_site) / var, g * g * (var + r_site)
+        else:
+            self.nu, self.nu_var = 0.0, math.inf
+
     def _posterior(self, s: KalmanSettings) -> float:
         """The posterior over no step and one step starting in each candidate interval (prior
-        ``log_prior``, size N(0, step_sigma^2)): fills ``mix``; returns the probability of a step."""
+        ``log_prior``, size N(0, step_sigma^2)): fills ``mix`` (counts: ``weights``); returns the
+        probability of a step."""
+        if self.bank:  # counts: each hypothesis' weight against no step's (``weights``)
+            logs = [hyp.logw for hyp in self.bank]
+            top = max(0.0, *logs)
+            ws = [math.exp(lg - top) for lg in logs]
+            norm = math.exp(-top) + sum(ws)
+            self.weights = [w / norm for w in ws]
+            self.p_step = sum(ws) / norm
+            return self.p_step
         a = 1.0 / (s.step_sigma_m_s2 * s.step_sigma_m_s2)
         logs = [lp + 0.5 * (math.log(a / (info + a)) + d * d / (info + a)) for _, _, _, _, d, info, lp in self.steps]
         top = max(0.0, *logs)
@@ -336,6 +541,9 @@ class _Axis:
     def _take_step(self) -> None:
         """A step is more likely than not: the state becomes the posterior's mean and covariance
         over no step and each candidate (moment matched), and the search starts again."""
+        if self.bank:
+            self._merge_bank()
+            return
         m = [0.0, 0.0, 0.0, 0.0]
         m2 = [0.0] * 10  # the correction's second moment, upper triangle of 4x4 row by row
         for (w, beta, var), st in zip(self.mix, self.steps, strict=True):
@@ -362,6 +570,25 @@ class _Axis:
         self.p23 += cov[8]
         self.p33 += cov[9]
         self.steps, self.mix = [], []
+        self.steps_found += 1
+
+    def _merge_bank(self) -> None:
+        """Counts: the state becomes the mixture of no step and the hypotheses (``weights``),
+        its mean and covariance over (v, b, c, e)."""
+        hyps = [self, *self.bank]
+        ws = [1.0 - self.p_step, *self.weights]
+        xs = [(h.v, h.b, h.c, h.e) for h in hyps]
+        ps = [((h.p00, h.p01, h.p02, h.p03), (h.p01, h.p11, h.p12, h.p13), (h.p02, h.p12, h.p22, h.p23),
+               (h.p03, h.p13, h.p23, h.p33)) for h in hyps]
+        m = [sum(w * x[i] for w, x in zip(ws, xs, strict=True)) for i in range(4)]
+        cov = [[sum(w * (p[i][j] + x[i] * x[j]) for w, x, p in zip(ws, xs, ps, strict=True)) - m[i] * m[j]
+                for j in range(4)] for i in range(4)]
+        self.v, self.b, self.c, self.e = m
+        self.p00, self.p01, self.p02, self.p03 = cov[0]
+        self.p11, self.p12, self.p13 = cov[1][1:]
+        self.p22, self.p23 = cov[2][2:]
+        self.p33 = cov[3][3]
+        self.bank, self.weights = [], []
         self.steps_found += 1
 
     def measured_noise(self, t: float, z: float, nominal_s: float) -> float:
@@ -391,6 +618,14 @@ class _Axis:
                + f2 * self.p12) + f2 * (f0 * self.p02 + f1 * self.p12 + f2 * self.p22)
                + s.accel_psd * dt + (s.disturbance_psd + s.step_rate_per_s * s.step_sigma_m_s2 ** 2) * dt ** 3 / 3.0)
         out = v + accel_integral + (b - c * v) * dt
+        if self.bank:  # counts: the mixture of no step and the hypotheses
+            m1 = (1.0 - self.p_step) * out
+            m2 = (1.0 - self.p_step) * (var + out * out)
+            for w, hyp in zip(self.weights, self.bank, strict=True):
+                o, vo = hyp.output(accel_integral, dt, s)
+                m1 += w * o
+                m2 += w * (vo + o * o)
+            return m1, m2 - m1 * m1
         if self.mix:
             m1 = m2 = 0.0
             for (w, beta, var_b), st in zip(self.mix, self.steps, strict=True):
@@ -406,7 +641,7 @@ class VelocityKalman:
     """The companion's velocity estimate (issue 19), both axes, pure: every time is passed in.
 
     Per axis a Kalman filter (velocity, disturbance acceleration, linear drag rate, and for counts
-    the last frame's quantization error; ``_Axis``) predicted with the attitude,
+    the running rounding error of their sum; ``_Axis``) predicted with the attitude,
     ``v' = s g tan(tilt) + b - c v`` (the plant's eq. 28 with the unknown force as ``b`` and drag
     as ``c``), from the ATTITUDE samples (``on_attitude``) interpolated linearly between them; and
     updated with eq. 15 (``update``) **at the flow sample's own time**
@@ -514,19 +749,21 @@ class VelocityKalman:
         axes = self.axes
         g = range_m / (span_s if span_s > 0.0 else s.nominal_frame_s)  # m/s per rad of flow
         gq2 = (g * s.quantization_rad) ** 2  # one frame's quantization error in eq. 15, m^2/s^2
-        # the frame just before this one was fused: its quantization error is the state's e
+        # the frame just before this one was fused: the running sum goes on from the state's e
         linked = 0.0 < time_s - self.last_time_s <= 1.5 * s.nominal_frame_s
         self.last_time_s = time_s
         r_model = (s.model_variance(z_x, range_m), s.model_variance(z_y, range_m))
         r = []
         for ax, z, rm in zip(axes, (z_x, z_y), r_model, strict=True):
-            # a difference of two quantization errors adds 20 of their variances to a second difference
-            measured = ax.measured_noise(t_m, z, s.nominal_frame_s) - 10.0 / 3.0 * gq2
+            if not linked:
+                ax.unlink(s)
+            if gq2 > 0.0:  # counts: the quantizer is modelled exactly, the white rest is the sensor model's
+                r.append(rm)
+                continue
+            measured = ax.measured_noise(t_m, z, s.nominal_frame_s)
             if measured != measured:  # not measured yet: the model, or the generous prior if larger
                 measured = (range_m * FLOW_NOISE_PRIOR_RAD_S) ** 2
             r.append(measured if measured > rm else rm)
-            if not linked:
-                ax.unlink(s)
         if not self.fresh(time_s):
             for ax in axes:
                 ax.restart(s)
