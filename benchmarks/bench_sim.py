@@ -185,7 +185,9 @@ def write_flight_tlog(path: str | Path, duration_s: float, seed: int = 0) -> dic
             values = {"frame": k, "t_s": t, "flow_x_counts": int(c["flow_x_counts"][k]),
                       "flow_y_counts": int(c["flow_y_counts"][k]), "flow_quality": 255, "gyro_z_rad_s": 0.0,
                       "force_x_n": 0.0, "force_y_n": 0.0, "roll_cmd_active_rad": float(roll_active[k]),
-                      "pitch_cmd_active_rad": float(pitch_active[k])}
+                      "pitch_cmd_active_rad": float(pitch_active[k]),
+                      # the fast engine models no accelerometer: RAW_IMU holds the (0, 0, -1000) mg placeholder
+                      "accel_x_m_s2": math.nan, "accel_y_m_s2": math.nan, "accel_z_m_s2": math.nan}
             s = FrameSample(**{name: values[name] if name in values else float(c[name][k]) for name in names})
             if k % int(round(1.0 / T)) == 0:
                 log.write(telemetry.heartbeat(veh, armed=True), stamp, encoder=veh)

@@ -65,12 +65,21 @@ class FlowSensor:
 
 @dataclass(frozen=True)
 class Imu:
-    """Gyro model. Noise is off unless ``gyro_noise``; the density is the VN-100's (Table II)."""
+    """Gyro model. Noise is off unless ``gyro_noise``; the density is the VN-100's (Table II).
+    Accelerometer model (issue 19; the simulator's truth, the companion's noise model): body FRD
+    specific force with white noise of this density (a sample's 1 sigma is density x sqrt(rate))
+    and a constant bias on x and y, saturating at its range; ``accelerometer`` false: RAW_IMU's
+    accelerometer fields hold the (0, 0, -1000) mg placeholder older recordings have."""
 
     rate_hz: float
     gyro_noise: bool
     gyro_noise_density_deg_s_sqrt_hz: float
     gyro_range_deg_s: float
+    accelerometer: bool
+    accel_noise_density_m_s2_sqrt_hz: float
+    accel_bias_x_m_s2: float
+    accel_bias_y_m_s2: float
+    accel_range_m_s2: float
 
 
 @dataclass(frozen=True)
@@ -124,6 +133,9 @@ class CompanionSettings:
     #: how much older the flow sample is than its message's time, beyond half the frame it covers
     #: (s; the Kalman filter fuses it at its own time; docs/estimator.md says how to measure it)
     flow_sample_age_s: float
+    #: the Kalman filter takes the vehicle's accelerometer (RAW_IMU / SCALED_IMU / HIGHRES_IMU) as its
+    #: prediction's input when the vehicle has one (docs/estimator.md); false: the filter without it
+    use_accelerometer: bool
 
 
 # ---------------------------------------------------------------------------------------------
@@ -330,6 +342,8 @@ def validate(cfg: Config) -> None:
         (cfg.flow_sensor.frame_rate_hz > 0, "flow_sensor.frame_rate_hz must be > 0"),
         (cfg.flow_sensor.q_rad_per_count > 0, "flow_sensor.q_rad_per_count must be > 0"),
         (cfg.imu.rate_hz > 0, "imu.rate_hz must be > 0"),
+        (cfg.imu.accel_noise_density_m_s2_sqrt_hz >= 0, "imu.accel_noise_density_m_s2_sqrt_hz must be >= 0"),
+        (cfg.imu.accel_range_m_s2 > 0, "imu.accel_range_m_s2 must be > 0"),
         (cfg.rangefinder.resolution_m >= 0, "rangefinder.resolution_m must be >= 0"),
         (0 <= cfg.rangefinder.min_m < cfg.rangefinder.max_m, "rangefinder needs 0 <= min_m < max_m"),
         (cfg.world.altitude_m > 0, "world.altitude_m must be > 0"),

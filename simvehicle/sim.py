@@ -21,8 +21,8 @@ import numpy as np
 
 from companion.config import Config
 from simvehicle.flow_sensor import flow_frame
-from simvehicle.imu import gyro_sample
-from simvehicle.plant import AXIS_SIGN, ZERO_AXIS, AxisState, PlantParams, axis_rk4
+from simvehicle.imu import accel_sample, gyro_sample, specific_force
+from simvehicle.plant import AXIS_SIGN, ZERO_AXIS, AxisState, PlantParams, axis_derivative, axis_rk4
 from simvehicle.rangefinder import range_reading
 
 ForceFn = Callable[[float], tuple[float, float]]
@@ -58,6 +58,10 @@ class FrameSample:
     force_y_n: float
     roll_cmd_active_rad: float
     pitch_cmd_active_rad: float
+    # the accelerometer as measured: body FRD specific force, m/s^2 (NaN: the IMU reports none)
+    accel_x_m_s2: float = math.nan
+    accel_y_m_s2: float = math.nan
+    accel_z_m_s2: float = math.nan
 
 
 @dataclass
@@ -87,6 +91,9 @@ class Simulator:
                  external_force: ForceFn = _no_force, altitude: AltitudeFn | None = None,
                  turbulence: Turbulence | None = None) -> None:
         self.rng = rng if rng is not None else np.random.default_rng(0)
+        # the accelerometer's noise from its own stream, spawned from ``rng``'s seed: the draws of
+        # every other sensor are those they were before the simulator had an accelerometer
+        self.accel_rng = self.rng.spawn(1)[0]
         self.T = cfg.flow_sensor.frame_period_s
         self.n_sub = cfg.sim.substeps_per_frame
         self.external_force = external_force
@@ -120,6 +127,7 @@ class Simulator:
         self.gyro_density = (math.radians(cfg.imu.gyro_noise_density_deg_s_sqrt_hz)
                              if cfg.imu.gyro_noise else 0.0)
         self.gyro_range = math.radians(cfg.imu.gyro_range_deg_s)
+        self.accel_bias = (cfg.imu.accel_bias_x_m_s2, cfg.imu.accel_bias_y_m_s2)
         self._hist_len = self.n_sub * (2 + int(self.delay_s / self.T + 1))
 
     def set_config(self, cfg: Config) -> None:
@@ -223,6 +231,7 @@ class Simulator:
         rng_m = range_reading(alt, self.rng, offset_m=self.range_offset, noise_std_m=rf.noise_std_m,
                               resolution_m=rf.resolution_m)
         fx, fy = self.force_at(t)
+        ax, ay, az = self.accelerometer(fx, fy, alt)
         return FrameSample(
             frame=self.frame, t_s=t, flow_x_counts=dx, flow_y_counts=dy, flow_quality=255,
             gyro_x_rad_s=gx, gyro_y_rad_s=gy, gyro_z_rad_s=gz, range_m=rng_m,
@@ -230,5 +239,22 @@ class Simulator:
             vx_m_s=self.x[2], vy_m_s=self.y[2], x_m=self.x[3], y_m=self.y[3], altitude_m=alt,
             phi_x_rad=self.x[4], phi_y_rad=self.y[4], force_x_n=fx, force_y_n=fy,
             roll_cmd_active_rad=self.u_active[0], pitch_cmd_active_rad=self.u_active[1],
+            accel_x_m_s2=ax, accel_y_m_s2=ay, accel_z_m_s2=az,
         )
+
+    def accelerometer(self, force_x_n: float, force_y_n: float, altitude_m: float) -> tuple[float, float, float]:
+        """The accelerometer's sample now (``imu.specific_force`` of the plant's acceleration, eq. 28
+        with the force and drag acting, through ``imu.accel_sample``); NaN when the config's IMU
+        has none. The plant holds its altitude (eq. 26-28 have no vertical motion): no vertical
+        acceleration."""
+        imu = self.cfg.imu
+        if not imu.accelerometer:
+            return math.nan, math.nan, math.nan
+        u_pitch, u_roll = self.u_active[1], self.u_active[0]
+        a_x = axis_derivative(self.x, u_pitch, force_x_n, altitude_m, AXIS_SIGN[0], p=self.params)[2]
+        a_y = axis_derivative(self.y, u_roll, force_y_n, altitude_m, AXIS_SIGN[1], p=self.params)[2]
+        f = specific_force(self.y[1], self.x[1], a_x, a_y, 0.0, self.params.gravity_m_s2)
+        return accel_sample(*f, self.accel_rng, bias_x_m_s2=self.accel_bias[0], bias_y_m_s2=self.accel_bias[1],
+                            noise_density_m_s2_sqrt_hz=imu.accel_noise_density_m_s2_sqrt_hz, rate_hz=imu.rate_hz,
+                            range_m_s2=imu.accel_range_m_s2)
 

@@ -12,6 +12,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from companion.importers.common import GRAVITY_M_S2
 from companion.mavlink_ids import DOWNWARD, GUIDED_NOGPS
 from companion.profiles import Profile
 from companion.rotation import euler_to_quaternion
@@ -65,9 +66,20 @@ def flow_message(enc: Any, s: FrameSample, profile: Profile, q_rad_per_count: fl
                                        s.gyro_z_rad_s * frame_s, 2500, s.flow_quality, 0, s.range_m)
 
 
+def accel_mg(s: FrameSample) -> tuple[int, int, int]:
+    """RAW_IMU's accelerometer fields: the sample's body FRD specific force in milli-g of standard
+    gravity (ArduPilot's GRAVITY_MSS, 9.80665), rounded to 1 mg and clipped to int16 (level: (0, 0,
+    -1000)); a sample without an accelerometer (NaN) gives that placeholder, as recordings made
+    before the simulator had one hold."""
+    if not (math.isfinite(s.accel_x_m_s2) and math.isfinite(s.accel_y_m_s2) and math.isfinite(s.accel_z_m_s2)):
+        return 0, 0, -1000
+    k = 1e3 / GRAVITY_M_S2
+    return _i16(s.accel_x_m_s2 * k), _i16(s.accel_y_m_s2 * k), _i16(s.accel_z_m_s2 * k)
+
+
 def raw_imu(enc: Any, s: FrameSample) -> Any:
-    """RAW_IMU: gyro in mrad/s (ArduPilot's convention), accelerometer in milli-g (level: -1000 on z)."""
-    return enc.raw_imu_encode(int(round(s.t_s * 1e6)), 0, 0, -1000, _i16(s.gyro_x_rad_s * 1e3),
+    """RAW_IMU: gyro in mrad/s (ArduPilot's convention), accelerometer in milli-g (``accel_mg``)."""
+    return enc.raw_imu_encode(int(round(s.t_s * 1e6)), *accel_mg(s), _i16(s.gyro_x_rad_s * 1e3),
                               _i16(s.gyro_y_rad_s * 1e3), _i16(s.gyro_z_rad_s * 1e3), 0, 0, 0)
 
 
