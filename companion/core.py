@@ -68,11 +68,13 @@ import dataclasses
 import enum
 import math
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from companion import rules
 from companion.config import Config
 from companion.controller import PiController, PiState, _axis
 from companion.estimator import KalmanSettings, VelocityKalman, VelocitySensor, scene_rate, velocity_from_flow
@@ -85,7 +87,7 @@ GYRO_REBOOT_S = 1.0
 #: an identical flow payload less than this many nominal frames after the last frame used is a repeat
 REPEAT_WINDOW_FRAMES = 0.75
 #: a flow time this much (s) before the last frame's means the vehicle rebooted (a new frame)
-FRAME_REBOOT_S = 1.0
+FRAME_REBOOT_S = rules.FRAME_REBOOT_S
 
 
 class HoldCause(enum.StrEnum):
@@ -137,7 +139,7 @@ def classify_frame(prev_time_s: float | None, time_s: float, reboot_jump_s: floa
     if prev_time_s is None:
         return FrameOrder.NEW
     dt = time_s - prev_time_s
-    if -reboot_jump_s <= dt <= 0.0:
+    if rules.duplicate_time(dt, reboot_jump_s):
         return FrameOrder.DUPLICATE
     if dt < -reboot_jump_s:
         return FrameOrder.REBOOT
@@ -387,45 +389,46 @@ class StepOutput:
 # 1. Gating and eq. 15, elementwise over frames (scalars in length-1 arrays, or whole columns)
 
 
+#: the per-frame gates in the order they are checked (the first that fails names the cause)
+GATE_CAUSES = CAUSE_CODES[1:8]
+
+
+def _gates(time_s: Any, scene_x: Any, scene_y: Any, quality: Any, gyro_found: Any, gyro_x_rad_s: Any,
+           gyro_y_rad_s: Any, range_found: Any, range_time_s: Any, range_m: Any, p: StepParams) -> Iterator[Any]:
+    """Each gate of ``GATE_CAUSES`` in turn (True: the frame fails it), one frame or columns:
+    ``companion.rules``' predicates, evaluated lazily so that one frame stops at the first."""
+    yield rules.flow_invalid(time_s, scene_x, scene_y)
+    yield rules.quality_zero(quality)
+    yield gyro_found == False  # noqa: E712 (arrays too)
+    yield rules.gyro_invalid(gyro_x_rad_s, gyro_y_rad_s, p.gyro_limit_rad_s)
+    yield range_found == False  # noqa: E712
+    yield rules.range_invalid(range_m, p.range_min_m, p.range_max_m)
+    yield rules.range_stale(time_s, range_time_s, p.range_timeout_s)
+
+
 def gate_frames(time_s: np.ndarray, scene_x: np.ndarray, scene_y: np.ndarray, quality: np.ndarray,
                 gyro_found: np.ndarray, gyro_x_rad_s: np.ndarray, gyro_y_rad_s: np.ndarray,
                 range_found: np.ndarray, range_time_s: np.ndarray, range_m: np.ndarray, *,
                 p: StepParams) -> np.ndarray:
     """Hold-cause code of each frame (index into ``CAUSE_CODES``; 0 = usable), before the spike
-    check. The first failing check in this order wins: flow not finite, quality 0, no gyro,
-    gyro saturated or not finite, no range, range outside the limits, range stale. A quality
-    that is not a number counts as 0."""
+    check: the first gate of ``GATE_CAUSES`` the frame fails (``_gates``): flow not finite,
+    quality 0 (or not a number), no gyro, gyro saturated or not finite, no range, range outside
+    the limits, range stale."""
     with np.errstate(all="ignore"):
-        flow_bad = ~(np.isfinite(scene_x) & np.isfinite(scene_y) & np.isfinite(time_s))
-        q_zero = ~(np.abs(np.asarray(quality, dtype=float)) >= 1.0)  # int(q) == 0, NaN included
-        gyro_bad = ~(np.isfinite(gyro_x_rad_s) & np.isfinite(gyro_y_rad_s)) \
-            | (np.abs(gyro_x_rad_s) >= p.gyro_limit_rad_s) | (np.abs(gyro_y_rad_s) >= p.gyro_limit_rad_s)
-        range_bad = ~(np.isfinite(range_m) & (range_m >= p.range_min_m) & (range_m <= p.range_max_m))
-        range_stale = (time_s - range_time_s) > p.range_timeout_s
-    conds = [flow_bad, q_zero, ~gyro_found, gyro_bad, ~range_found, range_bad, range_stale]
-    codes = np.select(conds, [_CODE[c] for c in CAUSE_CODES[1:8]], default=0)
+        conds = list(_gates(time_s, scene_x, scene_y, np.asarray(quality, dtype=float), np.asarray(gyro_found),
+                            gyro_x_rad_s, gyro_y_rad_s, np.asarray(range_found), range_time_s, range_m, p))
+    codes = np.select(conds, [_CODE[c] for c in GATE_CAUSES], default=0)
     return codes.astype(np.int8)
 
 
 def gate_frame(time_s: float, scene_x: float, scene_y: float, quality: float, gyro_found: bool,
                gyro_x_rad_s: float, gyro_y_rad_s: float, range_found: bool, range_time_s: float, range_m: float, *,
                p: StepParams) -> HoldCause:
-    """``gate_frames`` for one frame, in plain Python (the live loop); tested equal to it."""
-    if not (math.isfinite(scene_x) and math.isfinite(scene_y) and math.isfinite(time_s)):
-        return HoldCause.FLOW_INVALID
-    if not abs(quality) >= 1.0:  # int(quality) == 0, or not a number
-        return HoldCause.FLOW_QUALITY
-    if not gyro_found:
-        return HoldCause.GYRO_MISSING
-    if not (math.isfinite(gyro_x_rad_s) and math.isfinite(gyro_y_rad_s)) or abs(gyro_x_rad_s) >= p.gyro_limit_rad_s \
-            or abs(gyro_y_rad_s) >= p.gyro_limit_rad_s:
-        return HoldCause.GYRO_INVALID
-    if not range_found:
-        return HoldCause.RANGE_MISSING
-    if not (math.isfinite(range_m) and p.range_min_m <= range_m <= p.range_max_m):
-        return HoldCause.RANGE_INVALID
-    if time_s - range_time_s > p.range_timeout_s:
-        return HoldCause.RANGE_STALE
+    """``gate_frames`` for one frame (the live loop): the same gates, stopping at the first."""
+    for cause, failed in zip(GATE_CAUSES, _gates(time_s, scene_x, scene_y, quality, gyro_found, gyro_x_rad_s,
+                                                 gyro_y_rad_s, range_found, range_time_s, range_m, p), strict=True):
+        if failed:
+            return cause
     return HoldCause.NONE
 
 
@@ -443,12 +446,11 @@ def estimate_frames(codes: np.ndarray, time_s: np.ndarray, prev_time_s: np.ndarr
     ok = codes == 0
     with np.errstate(all="ignore"):
         d = time_s - prev_time_s
-        spacing = np.where((d > 0.0) & (d <= 5.0 * p.nominal_frame_s), d, p.nominal_frame_s)
-        dt = np.where(ok, spacing, p.nominal_frame_s)
+        dt = np.where(ok, rules.spacing(d, p.nominal_frame_s), p.nominal_frame_s)
         rate_x = scene_rate(scene_x, increment, integration_s, dt)
         rate_y = scene_rate(scene_y, increment, integration_s, dt)
         vx, vy = velocity_from_flow(rate_x, rate_y, gyro_x_rad_s, gyro_y_rad_s, range_m)
-        spike = ok & (np.maximum(np.abs(rate_x), np.abs(rate_y)) > p.max_scene_rate_rad_s)
+        spike = ok & rules.scene_spike(rate_x, rate_y, p.max_scene_rate_rad_s)
     codes = np.where(spike, np.int8(_CODE[HoldCause.FLOW_SPIKE]), codes).astype(np.int8)
     usable = codes == 0
     return codes, np.where(usable, vx, np.nan), np.where(usable, vy, np.nan), dt, rate_x, rate_y
@@ -458,34 +460,38 @@ def estimate_frames(codes: np.ndarray, time_s: np.ndarray, prev_time_s: np.ndarr
 # 2. The live alignment rules over a recording's columns
 
 
-def repeat_window(integration_s: np.ndarray, nominal_window_s: float,
-                  profile: Profile = Profile.PAPER, payload: np.ndarray | None = None) -> np.ndarray:
-    """The repeat window of each frame: ``REPEAT_WINDOW_FRAMES`` of the reading's own span when
-    the message states one, else the nominal window (as ``CompanionCore._is_repeat``). In the
-    ``ardupilot`` profile the window is infinite: float rates equal to the bit are the sample
-    ArduPilot re-sends (it keeps streaming the last sample ~0.5 s after the sensor stops), never a
-    new one, so a frozen flow is a lost flow (issue 18). The one exception: a payload (n, 6, as
-    ``CompanionCore.payload``) whose body rates (the gyro ArduPilot sends with the sample) are
-    both exactly 0.0 keeps the frame window: a real gyro is never exactly 0.0, so such a sample
-    comes from a noise-free (simulated or converted) source, where a still sensor really repeats."""
-    integ = np.asarray(integration_s, dtype=float)
-    with np.errstate(invalid="ignore"):
-        own = np.isfinite(integ) & (integ > 0.0)
-    window = np.where(own, REPEAT_WINDOW_FRAMES * np.where(own, integ, 0.0), nominal_window_s)
+def frame_repeat_window(integration_s: Any, body_x_rad_s: Any, body_y_rad_s: Any, nominal_window_s: float,
+                        profile: Profile) -> Any:
+    """The repeat window of a frame, or of each of a column of frames: ``REPEAT_WINDOW_FRAMES``
+    of the reading's own span when the message states one, else the nominal window
+    (``rules.repeat_window``). In the ``ardupilot`` profile the window is infinite: float rates
+    equal to the bit are the sample ArduPilot re-sends (it keeps streaming the last sample ~0.5 s
+    after the sensor stops), never a new one, so a frozen flow is a lost flow (issue 18). The one
+    exception: body rates (the gyro ArduPilot sends with the sample) both exactly 0.0 keep the
+    frame window: a real gyro is never exactly 0.0, so such a sample comes from a noise-free
+    (simulated or converted) source, where a still sensor really repeats."""
+    window = rules.repeat_window(integration_s, nominal_window_s, REPEAT_WINDOW_FRAMES)
     if profile is Profile.ARDUPILOT:
-        if payload is None:
-            return np.full(window.shape, math.inf)
-        pl = np.asarray(payload, dtype=float)
-        still = (pl[:, 4] == 0.0) & (pl[:, 5] == 0.0)
-        return np.where(still, window, math.inf)
+        return np.where((body_x_rad_s == 0.0) & (body_y_rad_s == 0.0), window, math.inf)
     return window
 
 
+def repeat_window(integration_s: np.ndarray, nominal_window_s: float,
+                  profile: Profile = Profile.PAPER, payload: np.ndarray | None = None) -> np.ndarray:
+    """``frame_repeat_window`` of each frame, the body rates from ``payload`` (n, 6, as
+    ``CompanionCore.payload``); without it none is exactly 0.0."""
+    integ = np.asarray(integration_s, dtype=float)
+    body = np.full((len(integ), 2), np.nan) if payload is None else np.asarray(payload, dtype=float)[:, 4:6]
+    with np.errstate(invalid="ignore"):
+        return np.asarray(frame_repeat_window(integ, body[:, 0], body[:, 1], nominal_window_s, profile))
+
+
 def repeat_mask(time_s: np.ndarray, payload: np.ndarray, window_s: float | np.ndarray) -> np.ndarray:
-    """Which flow messages (in arrival order) ``CompanionCore.on_flow`` does not step: the same
-    sample again (payload (n, k) equal to the last frame's, NaN equal to NaN, and ``0 <= t -
-    t_last < window_s``) or a time not after the last frame's (``-FRAME_REBOOT_S <= t - t_last <=
-    0``). ``t_last``: the time of the last stepped frame with a finite time."""
+    """Which flow messages (in arrival order) ``CompanionCore.on_flow`` does not step
+    (``rules.is_repeat``): the same sample again (payload (n, k) equal to the last frame's, NaN
+    equal to NaN, and ``0 <= t - t_last < window_s``) or a time not after the last frame's
+    (``-FRAME_REBOOT_S <= t - t_last <= 0``). ``t_last``: the time of the last stepped frame with
+    a finite time."""
     n = len(time_s)
     rep = np.zeros(n, dtype=bool)
     if n < 2:
@@ -496,12 +502,10 @@ def repeat_mask(time_s: np.ndarray, payload: np.ndarray, window_s: float | np.nd
     idx = np.maximum.accumulate(np.where(finite, np.arange(n), -1))
     t_last = np.full(n, np.nan)
     t_last[1:] = np.where(idx[:-1] >= 0, time_s[np.maximum(idx[:-1], 0)], np.nan)
-    a, b = payload[1:], payload[:-1]
     same = np.zeros(n, dtype=bool)
-    same[1:] = np.all((a == b) | (np.isnan(a) & np.isnan(b)), axis=1)
+    same[1:] = np.all(rules.same_value(payload[1:], payload[:-1]), axis=1)
     with np.errstate(invalid="ignore"):
-        d = time_s - t_last
-        flagged = (same & (d >= 0.0) & (d < window_s)) | ((d <= 0.0) & (d >= -FRAME_REBOOT_S))
+        flagged = rules.is_repeat(time_s - t_last, same, window_s)
     if not flagged.any():
         return rep
     # from the first skipped message on, each decision depends on the previous ones: walk them
@@ -511,11 +515,11 @@ def repeat_mask(time_s: np.ndarray, payload: np.ndarray, window_s: float | np.nd
     last_t = t_last[k]
     last_row = rows[k - 1]
     windows = window_s.tolist()
+    same_value, is_repeat = rules.same_value, rules.is_repeat
     for i in range(k, n):
         row = rows[i]
-        d_i = t[i] - last_t
-        same_row = all(x == y or (x != x and y != y) for x, y in zip(row, last_row, strict=True))
-        if (0.0 <= d_i < windows[i] and same_row) or -FRAME_REBOOT_S <= d_i <= 0.0:
+        same_row = all(same_value(x, y) for x, y in zip(row, last_row, strict=True))
+        if is_repeat(t[i] - last_t, same_row, windows[i]):
             rep[i] = True
             continue
         last_row = row
@@ -575,11 +579,10 @@ def align_gyro_columns(gyro_record: np.ndarray, gyro_time_s: np.ndarray, flow_re
         if not alive.any():
             break
         jj = np.where(alive, j, 0)
-        t = gyro_time_s[jj]
         with np.errstate(invalid="ignore"):
-            skew = np.abs(t - flow_time_s)
-            take = alive & (skew <= best_skew)
-            stop = alive & ~take & (t < flow_time_s - max_skew_s)
+            skew, take, stop = rules.gyro_scan(gyro_time_s[jj], flow_time_s, best_skew, max_skew_s)
+        take &= alive
+        stop &= alive
         best = np.where(take, jj, best)
         best_skew = np.where(take, skew, best_skew)
         alive &= ~stop
@@ -847,9 +850,10 @@ class Plausibility:
             self._flow_value = flow_xy
             rx.clear()
             ry.clear()
-        rx.append(-gyro[1])  # the rotation part of eq. 15 on each axis
-        ry.append(gyro[0])
-        if len(rx) == rx.maxlen and max(_span(rx), _span(ry)) > self.p.frozen_rotation_rad_s:
+        rot_x, rot_y = rules.flow_rotation(gyro[0], gyro[1])  # the rotation part of eq. 15 on each axis
+        rx.append(rot_x)
+        ry.append(rot_y)
+        if len(rx) == rx.maxlen and rules.rotating(_span(rx), _span(ry), self.p.frozen_rotation_rad_s):
             self.flow_frozen = flow_xy
             return True
         return False
@@ -868,7 +872,7 @@ class Plausibility:
             return False
         ax.append(att[0])
         ay.append(att[1])
-        if len(ax) == ax.maxlen and max(_span(ax), _span(ay)) > self.p.frozen_rotation_rad_s:
+        if len(ax) == ax.maxlen and rules.rotating(_span(ax), _span(ay), self.p.frozen_rotation_rad_s):
             self.gyro_frozen = gyro
             return True
         return False
@@ -876,8 +880,8 @@ class Plausibility:
     def _jump(self, time_s: float, v: tuple[float, float], range_m: float) -> HoldCause | None:
         if self.anchor is not None:
             t0, vx0, vy0, r0 = self.anchor
-            allowed = self.p.max_accel_m_s2 * (time_s - t0) + self.p.jump_noise_rad_s * min(range_m, r0)
-            if max(abs(v[0] - vx0), abs(v[1] - vy0)) > allowed and self.rejected < self.p.jump_hold_frames:
+            allowed = rules.jump_allowance(self.p.max_accel_m_s2, self.p.jump_noise_rad_s, time_s - t0, range_m, r0)
+            if rules.velocity_jump(v[0] - vx0, v[1] - vy0, allowed) and self.rejected < self.p.jump_hold_frames:
                 self.rejected += 1
                 return HoldCause.VELOCITY_JUMP
         self.anchor = (time_s, v[0], v[1], range_m)
@@ -951,16 +955,20 @@ def plausibility_columns(params: PlausibilityParams, time_s: np.ndarray, flow_x:
     same_flow = np.r_[False, (flow_x[1:] == flow_x[:-1]) & (flow_y[1:] == flow_y[:-1])]
     same_gyro = np.r_[False, (gyro_x_rad_s[1:] == gyro_x_rad_s[:-1]) & (gyro_y_rad_s[1:] == gyro_y_rad_s[:-1])]
     with np.errstate(invalid="ignore"):
-        rot = np.maximum(_trailing_span(-gyro_y_rad_s, m), _trailing_span(gyro_x_rad_s, m))
-        frozen_flow = (_run_length(same_flow) >= m) & (rot > p.frozen_rotation_rad_s)
+        rot_x, rot_y = rules.flow_rotation(gyro_x_rad_s, gyro_y_rad_s)
+        rot = rules.rotating(_trailing_span(rot_x, m), _trailing_span(rot_y, m), p.frozen_rotation_rad_s)
+        frozen_flow = (_run_length(same_flow) >= m) & rot
         att_run = np.where(att_ok, _run_length(same_gyro & att_ok & np.r_[False, att_ok[:-1]]), 0)
-        att_rot = np.maximum(_trailing_span(att_rate_x_rad_s, m), _trailing_span(att_rate_y_rad_s, m))
-        frozen_gyro = (att_run >= m) & (att_rot > p.frozen_rotation_rad_s)
+        att_rot = rules.rotating(_trailing_span(att_rate_x_rad_s, m), _trailing_span(att_rate_y_rad_s, m),
+                                 p.frozen_rotation_rad_s)
+        frozen_gyro = (att_run >= m) & att_rot
         jump = np.zeros(n, dtype=bool)
         dt = time_s[1:] - time_s[:-1]
-        allowed = p.max_accel_m_s2 * dt + p.jump_noise_rad_s * np.minimum(range_m[1:], range_m[:-1])
-        dv = np.maximum(np.abs(vx_m_s[1:] - vx_m_s[:-1]), np.abs(vy_m_s[1:] - vy_m_s[:-1]))
-        jump[1:] = (dv > allowed) | (dt < 0.0) | ~np.isfinite(dv) | ~np.isfinite(allowed)
+        allowed = rules.jump_allowance(p.max_accel_m_s2, p.jump_noise_rad_s, dt, range_m[1:], range_m[:-1])
+        dvx, dvy = vx_m_s[1:] - vx_m_s[:-1], vy_m_s[1:] - vy_m_s[:-1]
+        # NaN or a clock going back: left to the sequential checker
+        jump[1:] = rules.velocity_jump(dvx, dvy, allowed) | (dt < 0.0) | ~np.isfinite(dvx + dvy) \
+            | ~np.isfinite(allowed)
     candidates = np.flatnonzero(frozen_flow | frozen_gyro | jump)
     if len(candidates) == 0:
         return []
@@ -1034,7 +1042,7 @@ class CompanionCore:
         if not (math.isfinite(vx_m_s) and math.isfinite(vy_m_s)):
             return
         vmax = self.cfg.companion.max_speed_m_s
-        self.setpoint_m_s = (min(max(vx_m_s, -vmax), vmax), min(max(vy_m_s, -vmax), vmax))
+        self.setpoint_m_s = (float(rules.clip_speed(vx_m_s, vmax)), float(rules.clip_speed(vy_m_s, vmax)))
 
     def set_profile(self, profile: Profile) -> None:
         """Bind the core to ``profile`` once a live link has told which it is (before any flow
@@ -1058,13 +1066,15 @@ class CompanionCore:
     # -- the step ----------------------------------------------------------------------------
 
     def _aligned_gyro(self, time_s: float) -> tuple[float, float] | None:
+        """The gyro sample nearest the frame (``rules.gyro_scan`` from the newest back)."""
         best = None
-        best_skew = self.params.max_gyro_skew_s
+        max_skew = best_skew = self.params.max_gyro_skew_s
+        scan = rules.gyro_scan
         for t, gx, gy in reversed(self._gyro):
-            skew = abs(t - time_s)
-            if skew <= best_skew:
+            skew, take, stop = scan(t, time_s, best_skew, max_skew)
+            if take:
                 best, best_skew = (gx, gy), skew
-            elif t < time_s - self.params.max_gyro_skew_s:
+            elif stop:
                 break
         return best
 
@@ -1075,21 +1085,15 @@ class CompanionCore:
                 float(f.body_x_rad_s), float(f.body_y_rad_s))
 
     def _is_repeat(self, f: FlowColumns, payload: tuple[float, ...]) -> bool:
-        """The same sample again, or a frame not after the last one (``repeat_mask``)."""
+        """The same sample again, or a frame not after the last one (``rules.is_repeat``, with
+        ``frame_repeat_window``; ``repeat_mask`` over columns)."""
         prev = self._last_payload
         if prev is None or self.last is None:
             return False
-        if classify_frame(self._last_used_time_s, f.time_s) is FrameOrder.DUPLICATE:
-            return True
-        dt = f.time_s - self._last_used_time_s
-        window = self.params.repeat_window_s
-        if math.isfinite(f.integration_s) and f.integration_s > 0.0:  # the reading states its own span
-            window = REPEAT_WINDOW_FRAMES * f.integration_s
-        if self.profile is Profile.ARDUPILOT and not payload[4] == payload[5] == 0.0:
-            window = math.inf  # float rates equal to the bit: a re-send, whatever its time (repeat_window)
-        if not 0.0 <= dt < window:
-            return False
-        return all(a == b or (a != a and b != b) for a, b in zip(payload, prev, strict=True))
+        window = frame_repeat_window(f.integration_s, payload[4], payload[5], self.params.repeat_window_s,
+                                     self.profile)
+        same = all(rules.same_value(a, b) for a, b in zip(payload, prev, strict=True))
+        return bool(rules.is_repeat(f.time_s - self._last_used_time_s, same, window))
 
     def is_repeat(self, f: FlowColumns) -> bool:
         """Whether ``on_flow`` would take ``f`` as a repeat (and step nothing)."""
@@ -1148,7 +1152,7 @@ class CompanionCore:
         if cause is HoldCause.NONE:
             vx, vy, dt, rate_x, rate_y = self.sensor.update(f.time_s, f.scene_x, f.scene_y, f.increment,
                                                             f.integration_s, gx, gy, rng)
-            if max(abs(rate_x), abs(rate_y)) > p.max_scene_rate_rad_s:
+            if rules.scene_spike(rate_x, rate_y, p.max_scene_rate_rad_s):
                 cause = HoldCause.FLOW_SPIKE
                 vx = vy = math.nan
             else:  # what one frame cannot show: checked against the frames before

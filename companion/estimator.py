@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from companion.rules import spacing
+
 
 def velocity_from_flow(scene_rate_x_rad_s: Any, scene_rate_y_rad_s: Any, gyro_x_rad_s: Any,
                        gyro_y_rad_s: Any, range_m: Any) -> tuple[Any, Any]:
@@ -39,32 +41,27 @@ def scene_rate(scene: Any, increment: bool, integration_s: Any, frame_dt_s: Any)
 
 
 def scene_rate_scalar(scene: float, increment: bool, integration_s: float, frame_dt_s: float) -> float:
-    """``scene_rate`` for one frame in plain floats (the live loop's hot path), same rule."""
-    if not increment:
-        return scene
-    own = integration_s == integration_s and integration_s != math.inf and integration_s > 0.0
-    return scene / (integration_s if own else frame_dt_s)
+    """``scene_rate`` for one frame, as a float."""
+    return float(scene_rate(scene, increment, integration_s, frame_dt_s))
 
 
 def frame_spacing(prev_time_s: float | None, time_s: float, nominal_s: float) -> float:
-    """The time a flow frame's counts cover: the spacing from the previous frame when it is
-    plausible (0 < dt <= 5 frames), else the nominal frame period (first frame, reboot, gap)."""
+    """The time a flow frame's counts cover (``companion.rules.spacing``): the spacing from the
+    previous frame when it is plausible (0 < dt <= 5 frames), else the nominal frame period
+    (first frame, reboot, gap)."""
     if prev_time_s is None:
         return nominal_s
-    dt = time_s - prev_time_s
-    if 0.0 < dt <= 5.0 * nominal_s:
-        return dt
-    return nominal_s
+    return float(spacing(time_s - prev_time_s, nominal_s))
 
 
 def frame_spacing_array(time_s: np.ndarray, nominal_s: float) -> np.ndarray:
-    """``frame_spacing`` over a whole column of frame times (replay), same rule."""
+    """``frame_spacing`` over a whole column of frame times (replay, the fast simulator)."""
     dt = np.empty_like(time_s, dtype=float)
     if len(time_s) == 0:
         return dt
     dt[0] = nominal_s
-    d = np.diff(time_s)
-    dt[1:] = np.where((d > 0.0) & (d <= 5.0 * nominal_s), d, nominal_s)
+    with np.errstate(invalid="ignore"):
+        dt[1:] = spacing(np.diff(time_s), nominal_s)
     return dt
 
 

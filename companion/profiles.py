@@ -146,32 +146,14 @@ def flow_columns(fields: Any, profile: Profile, q_rad_per_count: float) -> FlowC
     )
 
 
-def _div(a: float, b: float) -> float:
-    """``a / b`` with numpy's IEEE rules (x/0 = +-inf, 0/0 = NaN), for the scalar path."""
-    if b != 0.0:
-        return a / b
-    if a != a or a == 0.0:
-        return math.nan
-    return math.copysign(math.inf, a) * math.copysign(1.0, b)
-
-
 def flow_scalar(msg: Any, profile: Profile, q_rad_per_count: float) -> FlowColumns:
-    """``flow_columns`` for one pymavlink message in plain Python floats (the live loop's hot
-    path: no numpy on single values). The same arithmetic, tested equal to ``flow_columns``."""
-    nan = math.nan
-    if profile is Profile.PAPER:
-        cx, cy = float(msg.flow_x), float(msg.flow_y)
-        us = getattr(msg, "integration_time_us", None)
-        return FlowColumns(float(msg.time_usec) * 1e-6, cx * q_rad_per_count, cy * q_rad_per_count, True,
-                           nan if us is None else float(us) * 1e-6, int(msg.quality), cx, cy)
-    if profile is Profile.ARDUPILOT:
-        rx, ry = float(msg.flow_rate_x), float(msg.flow_rate_y)
-        return FlowColumns(float(msg.time_usec) * 1e-3, -ry, +rx, False, nan, int(msg.quality), nan, nan,
-                           rx - float(msg.flow_comp_m_x), ry - float(msg.flow_comp_m_y))
-    ix, iy = float(msg.integrated_x), float(msg.integrated_y)
-    integ = float(msg.integration_time_us) * 1e-6
-    return FlowColumns(float(msg.time_usec) * 1e-6, -iy, +ix, True, integ, int(msg.quality), nan, nan,
-                       _div(float(msg.integrated_xgyro), integ), _div(float(msg.integrated_ygyro), integ))
+    """``flow_columns`` for one pymavlink message (the live loop), its values as Python floats
+    (the quality as an int): the same mapping, so one rule."""
+    with np.errstate(all="ignore"):
+        c = flow_columns(FieldView(msg), profile, q_rad_per_count)
+    return FlowColumns(float(c.time_s), float(c.scene_x), float(c.scene_y), c.increment, float(c.integration_s),
+                       int(c.quality), float(c.counts_x), float(c.counts_y), float(c.body_x_rad_s),
+                       float(c.body_y_rad_s))
 
 
 def _optional_integration_s(f: Any, like: np.ndarray) -> np.ndarray:

@@ -105,6 +105,7 @@ from companion.recording import (
     read_recording_bytes,
     recording_name,
 )
+from companion.rules import clip_speed
 from companion.setpoint import decayed_setpoint
 from companion.signals import (
     companion_commands,
@@ -247,8 +248,7 @@ def frame_setpoints(rec: Recording, cfg: Config, sysid: int, flow_record: np.nda
         sx = np.where(idx >= 0, sx[np.maximum(idx, 0)], 0.0)
         sy = np.where(idx >= 0, sy[np.maximum(idx, 0)], 0.0)
     vmax = cfg.companion.max_speed_m_s
-    sx = np.minimum(np.maximum(sx, -vmax), vmax)
-    sy = np.minimum(np.maximum(sy, -vmax), vmax)
+    sx, sy = clip_speed(sx, vmax), clip_speed(sy, vmax)
     return sx, sy, " then ".join(src) if src else "none in the recording (0)"
 
 

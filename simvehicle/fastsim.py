@@ -71,6 +71,7 @@ from typing import Any
 
 import numpy as np
 
+from companion import rules
 from companion.config import Config, load_config
 from companion.controller import _axis as _pi_axis_py
 from companion.core import CompanionCore
@@ -95,9 +96,14 @@ def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
     return _numba.njit(cache=True, nogil=True)(fn)
 
 
-#: the companion's own eq. 15 and per-axis PI step, compiled (same source as the live loop's)
+#: the companion's own eq. 15, per-axis PI step and step rules (``companion.rules``), compiled:
+#: the same source as the live loop's and replay's
 _velocity_from_flow = _jit(_velocity_from_flow_py)
 _pi_axis = _jit(_pi_axis_py)
+_clip_speed = _jit(rules.clip_speed)
+_gyro_invalid = _jit(rules.gyro_invalid)
+_range_invalid = _jit(rules.range_invalid)
+_scene_spike = _jit(rules.scene_spike)
 
 #: Gauss-Legendre nodes per frame. From 4 nodes on, the frame-time scene angle of a 150 s
 #: demanding flight stops changing and sits within 1.5e-10 rad of the 1 ms RK4 reference (whose
@@ -317,12 +323,11 @@ def _frames(f0, f1, T, tt, dtc, P, Mn, MT, Md, WvT, WpT, WpD, eT, ePT, Pd0, wq, 
             spx = sp_sched[isp, f, 0]
             spy = sp_sched[isp, f, 1]
             if math.isfinite(spx) and math.isfinite(spy):
-                vmax = p[P_VMAX]
-                sp[i, 0] = min(max(spx, -vmax), vmax)
-                sp[i, 1] = min(max(spy, -vmax), vmax)
-            glim = p[P_GYRO_LIMIT]
-            ok = (math.isfinite(cgx) and math.isfinite(cgy) and abs(cgx) < glim and abs(cgy) < glim
-                  and math.isfinite(crng) and p[P_RANGE_MIN] <= crng <= p[P_RANGE_MAX])
+                sp[i, 0] = _clip_speed(spx, p[P_VMAX])
+                sp[i, 1] = _clip_speed(spy, p[P_VMAX])
+            # the gates that can fail here (the flow, its quality, the gyro's and range's presence
+            # and the range's age cannot): GYRO_INVALID, RANGE_INVALID
+            ok = not (_gyro_invalid(cgx, cgy, p[P_GYRO_LIMIT]) or _range_invalid(crng, p[P_RANGE_MIN], p[P_RANGE_MAX]))
             dt = dtc[f]
             evx = math.nan
             evy = math.nan
@@ -332,7 +337,7 @@ def _frames(f0, f1, T, tt, dtc, P, Mn, MT, Md, WvT, WpT, WpD, eT, ePT, Pd0, wq, 
                 rx = dcx * p[P_Q_NOM] / dt
                 ry = dcy * p[P_Q_NOM] / dt
                 evx, evy = _velocity_from_flow(rx, ry, cgx, cgy, crng)
-                if max(abs(rx), abs(ry)) > p[P_MAX_RATE]:
+                if _scene_spike(rx, ry, p[P_MAX_RATE]):
                     ok = False
                     evx = math.nan
                     evy = math.nan
