@@ -8,6 +8,8 @@ Set FLOWHOLD_DEBUG=1 to see the traceback of an unexpected error.
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from collections.abc import Callable, Sequence
 
 from companion.errors import run_command
@@ -108,12 +110,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_blas_thread() -> None:
+    """One OpenBLAS thread for ``replay`` and ``info``, unless the user chose otherwise: they do
+    no large linear algebra, and OpenBLAS's idle threads, started when numpy loads, spin for
+    about 0.1 s of CPU each before they sleep, taking the core the compiled reader's and CSV
+    writer's second thread would run on (docs/performance.md). Only before numpy is loaded
+    (after, it has no effect)."""
+    if "numpy" not in sys.modules:
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
 def _dispatch(command: str) -> Callable[[argparse.Namespace], int]:
     if command == "run":
         from companion.live import run_cli
     elif command == "replay":
+        _one_blas_thread()
         from companion.replay import run_cli
     elif command == "info":
+        _one_blas_thread()
         from companion.info import run_cli
     elif command == "fleet":
         from companion.fleet.run import run_cli

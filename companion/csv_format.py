@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import queue
 import re
-from collections.abc import Iterator, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -56,11 +58,13 @@ def format_rows(columns: Sequence[np.ndarray], formats: Sequence[str]) -> bytes:
     return b"".join(bytes(part) for part in iter_rows(columns, formats))
 
 
-def iter_rows(columns: Sequence[np.ndarray], formats: Sequence[str], block_rows: int = 65_536
-              ) -> Iterator[bytes | memoryview]:
+def iter_rows(columns: Sequence[np.ndarray], formats: Sequence[str], block_rows: int = 65_536,
+              threads: int | None = None) -> Iterator[bytes | memoryview]:
     """``format_rows(columns, formats)`` in pieces of up to ``block_rows`` rows, for writing
     to a file as they come (a piece may be a view of a buffer the next one reuses: write it
-    before asking for the next)."""
+    before asking for the next). With the compiled kernel, the pieces are formatted by up to
+    ``threads`` threads (default ``native.threads()``) while the caller writes the ones before:
+    each piece is the same text whichever thread formats it."""
     cols = [np.asarray(c) for c in columns]
     if not cols:
         return
@@ -74,7 +78,8 @@ def iter_rows(columns: Sequence[np.ndarray], formats: Sequence[str], block_rows:
         return
     lib = native.kernels()
     if lib is not None:
-        yield from _rows_native(lib, cols, kinds, n, block_rows)  # type: ignore[arg-type]
+        yield from _rows_native(lib, cols, kinds, n, block_rows,  # type: ignore[arg-type]
+                                native.threads() if threads is None else threads)
         return
     for a in range(0, n, block_rows):
         part = []
@@ -89,10 +94,12 @@ def iter_rows(columns: Sequence[np.ndarray], formats: Sequence[str], block_rows:
 _NATIVE_FLOAT, _NATIVE_INT, _NATIVE_TEXT = 0, 1, 2
 
 
-def _rows_native(lib: Any, cols: list[np.ndarray], kinds: list[tuple[str, int]], n: int, block_rows: int
-                 ) -> Iterator[memoryview]:
+def _rows_native(lib: Any, cols: list[np.ndarray], kinds: list[tuple[str, int]], n: int, block_rows: int,
+                 threads: int = 1) -> Iterator[memoryview]:
     """``iter_rows`` by the compiled kernel: floats as float64, integers as int64, ``%s``
-    columns as codes into their distinct texts (as ``_strings``)."""
+    columns as codes into their distinct texts (as ``_strings``). ``threads`` > 1: the pieces
+    are formatted in that many threads (``_in_threads``; ctypes lets go of the GIL in the
+    kernel), each piece by the same call as in one thread."""
     kind_c, data, digits, blobs, offsets, width = [], [], [], [], [], 0
     keep: list[np.ndarray] = []  # the arrays the kernel reads, alive until the end
     for col, (k, p) in zip(cols, kinds, strict=True):
@@ -122,19 +129,71 @@ def _rows_native(lib: Any, cols: list[np.ndarray], kinds: list[tuple[str, int]],
     pointers = ctypes.c_void_p * ncols
     kind_a = np.array(kind_c, dtype=np.int32)
     digit_a = np.array(digits, dtype=np.int32)
-    data_p, blob_p, off_p = pointers(*data), pointers(*blobs), pointers(*offsets)
-    rows = min(block_rows, max(n, 1))
-    out = np.empty(rows * row_bound + 64, dtype=np.uint8)  # + room for the kernel's whole-slot copies
-    view = memoryview(out)  # type: ignore[arg-type]
-    for a in range(0, n, block_rows):
+    blob_p, off_p = pointers(*blobs), pointers(*offsets)
+    size = min(block_rows, max(n, 1)) * row_bound + 64  # + room for the kernel's whole-slot copies
+
+    def fill(a: int, out: np.ndarray) -> int:
+        """Rows [a, a + block_rows) into ``out``; the bytes written."""
         m = min(block_rows, n - a)
         shifted = pointers(*(d + a * (8 if kc != _NATIVE_TEXT else 4) for d, kc in zip(data, kind_c, strict=True)))
         written = lib.fh_csv_rows(m, ncols, kind_a.ctypes.data, shifted, digit_a.ctypes.data, blob_p, off_p,
                                   out.ctypes.data, len(out), row_bound)
         if written < 0:
             raise RuntimeError("internal error: CSV row longer than its bound")
-        yield view[:written]
-    del keep, data_p
+        return int(written)
+
+    starts = range(0, n, block_rows)
+    if threads > 1 and len(starts) > 1:
+        yield from _in_threads(fill, starts, size, min(threads, len(starts)))
+    else:
+        out = np.empty(size, dtype=np.uint8)
+        view = memoryview(out)  # type: ignore[arg-type]
+        for a in starts:
+            yield view[:fill(a, out)]
+    del keep
+
+
+def _in_threads(fill: Callable[[int, np.ndarray], int], starts: range, size: int, threads: int
+                ) -> Iterator[memoryview]:
+    """``fill``'s pieces at ``starts``, in order, formatted ahead by ``threads`` threads: thread
+    w formats pieces w, w + threads, ... into its two buffers in turn, a buffer taken again only
+    once the caller has asked for the piece after the one it held (so the caller's write of a
+    piece overlaps the formatting of the next ones)."""
+    free = [threading.Semaphore(2) for _ in range(threads)]
+    done: list[queue.SimpleQueue[tuple[memoryview | None, BaseException | None]]] = [
+        queue.SimpleQueue() for _ in range(threads)]
+    stop = threading.Event()
+
+    def work(w: int) -> None:
+        bufs = [np.empty(size, dtype=np.uint8) for _ in range(2)]
+        for j, a in enumerate(starts[w::threads]):
+            free[w].acquire()
+            if stop.is_set():
+                return
+            out = bufs[j % 2]
+            try:
+                piece = memoryview(out)[:fill(a, out)]  # type: ignore[arg-type]
+            except BaseException as exc:  # handed to the caller's thread
+                done[w].put((None, exc))
+                return
+            done[w].put((piece, None))
+
+    pool = [threading.Thread(target=work, args=(w,), daemon=True, name=f"csv-format-{w}") for w in range(threads)]
+    for t in pool:
+        t.start()
+    try:
+        for k in range(len(starts)):
+            piece, exc = done[k % threads].get()
+            if exc is not None:
+                raise exc
+            yield piece  # type: ignore[misc]
+            free[k % threads].release()  # the caller is done with the piece
+    finally:
+        stop.set()
+        for sem in free:
+            sem.release()
+        for t in pool:
+            t.join()
 
 
 def _kind(col: np.ndarray, fmt: str) -> tuple[str, int] | None:

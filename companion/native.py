@@ -18,18 +18,25 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import itertools
 import os
-import subprocess
 import sys
 import tempfile
+import threading
 import zlib
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TypeVar
 
 SOURCE = Path(__file__).resolve().parent / "native" / "kernels.c"
 #: the ABI the Python side expects (``fh_version`` in kernels.c)
-VERSION = 6
+VERSION = 7
 _FLAGS = ("-O2", "-std=c99", "-ffp-contract=off", "-shared", "-fPIC")
 _COMPILE_TIMEOUT_S = 120.0
+#: most threads the kernels run in at once (reading and formatting are memory-bound beyond a few)
+MAX_THREADS = 4
+
+T = TypeVar("T")
 
 
 def enabled() -> bool:
@@ -60,6 +67,8 @@ def library_path() -> Path:
 
 def _build(target: Path) -> None:
     """Compile the source into ``target`` (atomically: other processes may build it too)."""
+    import subprocess  # only to build: 5 ms of every command's start-up otherwise
+
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=target.stem + ".", suffix=".tmp.so", dir=target.parent)
     os.close(fd)
@@ -85,7 +94,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.fh_scan.restype = i64
     lib.fh_scan.argtypes = (p, i64, i64, i64, p, p, i64, i64, p, p, p, p, p, p, p, p, p, i64, p, p)
     lib.fh_tables.restype = i32
-    lib.fh_tables.argtypes = (p, i64, p, p, p, p, p, p, p, i32, p, p, p, p, p, p, p, p, p, p)
+    lib.fh_tables.argtypes = (p, i64, i64, p, p, p, p, p, p, p, i32, p, p, p, p, p, p, p, p, p, p)
     lib.fh_csv_rows.restype = i64
     lib.fh_csv_rows.argtypes = (i64, i32, p, p, p, p, p, p, i64, i64)
 
@@ -114,6 +123,8 @@ def _kernels() -> ctypes.CDLL | None:
             lib = _load(path)
             if lib is not None:
                 return lib
+    import subprocess  # only to build
+
     for path in candidates:
         try:
             _build(path)
@@ -131,3 +142,48 @@ def kernels() -> ctypes.CDLL | None:
 def ptr(a: object) -> int | None:
     """The data address of a numpy array, for a ``c_void_p`` argument."""
     return a.ctypes.data  # type: ignore[attr-defined]
+
+
+def threads() -> int:
+    """How many threads the kernels' callers run them in: the CPUs this process may run on
+    (``os.sched_getaffinity``: ``taskset -c 0`` gives one), at most ``MAX_THREADS``. The kernels
+    are called through ctypes, which lets go of the GIL for the call, so they run in parallel."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count() or 1
+    return max(1, min(MAX_THREADS, cpus))
+
+
+def run_all(tasks: Sequence[Callable[[], T]], n_threads: int) -> list[T]:
+    """Each task's result, in the tasks' order. The tasks run on ``n_threads`` threads, this one
+    among them, each taking the next task not yet taken; one thread: in order, here. The first
+    exception a task raises is raised here once every thread has stopped (no task is started
+    after it)."""
+    results: list[T | None] = [None] * len(tasks)
+    errors: list[BaseException] = []
+    taken = itertools.count()  # next() of a count is atomic under the GIL
+
+    def work() -> None:
+        while not errors:
+            i = next(taken)
+            if i >= len(tasks):
+                return
+            try:
+                results[i] = tasks[i]()
+            except BaseException as exc:  # raised again in the caller's thread
+                errors.append(exc)
+                return
+
+    pool = [threading.Thread(target=work, daemon=True, name=f"flowhold-kernel-{k}")
+            for k in range(min(n_threads, len(tasks)) - 1)]
+    for t in pool:
+        t.start()
+    try:
+        work()
+    finally:
+        for t in pool:
+            t.join()
+    if errors:
+        raise errors[0]
+    return results  # type: ignore[return-value]

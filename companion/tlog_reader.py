@@ -38,6 +38,7 @@ import ctypes
 import functools
 import re
 import sys
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,6 +71,8 @@ TIME_SPIKE_TOL_END_S = 86400.0
 _CRC_BLOCK_BYTES = 1 << 22
 #: bytes of the file scanned for packet starts at a time
 _SCAN_CHUNK = 1 << 23
+#: packets from which the compiled decoding is shared among threads (below, starting them costs more)
+_PARALLEL_MIN_PACKETS = 200_000
 #: bytes of payload rows decoded per block
 _DECODE_BLOCK_BYTES = 1 << 20
 #: the CRC is computed on rows whose width is a multiple of this many bytes (8: see _KEEP_FROM)
@@ -799,36 +802,45 @@ def _pass1_native(lib: Any, buf: np.ndarray, n_bytes: int, progress: _Progress
                   ) -> tuple[list[_Packets], list[np.ndarray]]:
     """Pass 1 of ``_find_packets`` by the compiled kernel (``fh_scan`` in companion/native/kernels.c,
     the numpy pass candidate by candidate): the good packets, and the candidates that fit but are
-    not chained. The outputs are sized for a record every 16 bytes (the shortest record: more is
-    possible only with overlapping candidates, and then the scan resumes into new arrays); pages
-    never written are never touched."""
+    not chained. Each candidate is judged on its own, so the file is scanned in pieces of
+    ``_SCAN_CHUNK`` bytes, on ``native.threads()`` threads, and the pieces' findings put in file
+    order: the same as one scan from start to end."""
+    lock = threading.Lock()
+    chunks = range(TIME_HEADER_LEN, n_bytes, _SCAN_CHUNK)
+
+    def scan(a: int) -> tuple[list[_Packets], list[np.ndarray]]:
+        b = min(a + _SCAN_CHUNK, n_bytes)
+        found = _scan_native(lib, buf, n_bytes, a, b)
+        with lock:
+            progress.advance(60.0 * (b - a) / max(1, n_bytes - TIME_HEADER_LEN))
+        return found
+
+    parts = native.run_all([functools.partial(scan, a) for a in chunks], native.threads())
+    return [g for good, _ in parts for g in good], [o for _, other in parts for o in other]
+
+
+def _scan_native(lib: Any, buf: np.ndarray, n_bytes: int, pos: int, stop: int
+                 ) -> tuple[list[_Packets], list[np.ndarray]]:
+    """``fh_scan`` over the candidates in [pos, stop). The outputs are sized for a record every
+    16 bytes (the shortest record: more is possible only with overlapping candidates, and then
+    the scan resumes into new arrays); pages never written are never touched."""
     known_tab, extra_tab = _crc_extra_lookup()
     known_u8 = known_tab.view(np.uint8)
     good_parts: list[_Packets] = []
     other_parts: list[np.ndarray] = []
     n_good = ctypes.c_int64()
     n_other = ctypes.c_int64()
-    pos = TIME_HEADER_LEN
-    while pos < n_bytes:
-        cap = (n_bytes - pos) // 16 + 64
+    while pos < stop:
+        cap = (stop - pos) // 16 + 64
         cols = _Packets(np.empty(cap, np.int64), np.empty(cap, np.uint8), np.empty(cap, np.int16),
                         np.empty(cap, np.int16), np.empty(cap, np.int32), np.empty(cap, np.uint8),
                         np.empty(cap, np.uint8), np.empty(cap, np.uint64))
         other = np.empty(cap, np.int64)
-        done_good = done_other = 0
-        while pos < n_bytes and done_good < cap and done_other < cap:
-            stop = min(pos + _SCAN_CHUNK, n_bytes)  # in chunks, for the progress bar
-            reached = lib.fh_scan(buf.ctypes.data, n_bytes, pos, stop, known_u8.ctypes.data, extra_tab.ctypes.data,
-                                  len(known_tab), cap - done_good,
-                                  *(getattr(cols, f)[done_good:].ctypes.data for f in _Packets._FIELDS),
-                                  ctypes.byref(n_good), cap - done_other, other[done_other:].ctypes.data,
-                                  ctypes.byref(n_other))
-            done_good += n_good.value
-            done_other += n_other.value
-            progress.advance(60.0 * (reached - pos) / max(1, n_bytes - TIME_HEADER_LEN))
-            pos = reached
-        good_parts.append(_Packets(*(getattr(cols, f)[:done_good] for f in _Packets._FIELDS)))
-        other_parts.append(other[:done_other])
+        pos = lib.fh_scan(buf.ctypes.data, n_bytes, pos, stop, known_u8.ctypes.data, extra_tab.ctypes.data,
+                          len(known_tab), cap, *(getattr(cols, f).ctypes.data for f in _Packets._FIELDS),
+                          ctypes.byref(n_good), cap, other.ctypes.data, ctypes.byref(n_other))
+        good_parts.append(_Packets(*(getattr(cols, f)[:n_good.value] for f in _Packets._FIELDS)))
+        other_parts.append(other[:n_other.value])
     return good_parts, other_parts
 
 
@@ -1044,14 +1056,25 @@ def _tables_native(lib: Any, buf: np.ndarray, pk: _Packets, t_s: np.ndarray, pro
         return (ctypes.c_void_p * max(1, len(values)))(*values)
 
     size_a, first_a, off_a, wid_a = ints(sizes), ints(first_field), ints(offsets), ints(widths)
-    rows = np.zeros(max(1, len(fast)), dtype=np.int64)
     s = np.ascontiguousarray(pk.s, dtype=np.int64)
     t = np.ascontiguousarray(t_s, dtype=np.float64)
-    code = lib.fh_tables(buf.ctypes.data, n, s.ctypes.data, pk.hdr.ctypes.data, pk.plen.ctypes.data,
-                         group.ctypes.data, t.ctypes.data, pk.sysid.ctypes.data, pk.compid.ctypes.data, len(fast),
-                         size_a.ctypes.data, first_a.ctypes.data, off_a.ctypes.data, wid_a.ctypes.data, ptrs(outs),
-                         *(ptrs([m[j].ctypes.data for m in metas]) for j in range(4)), rows.ctypes.data)
-    if code != 0:
+    outs_p, metas_p = ptrs(outs), [ptrs([m[j].ctypes.data for m in metas]) for j in range(4)]
+    # the packets in ranges, one per thread, each range's rows of a type starting after the rows
+    # the ranges before it have of that type
+    n_threads = native.threads() if n >= _PARALLEL_MIN_PACKETS else 1
+    cuts = [n * k // n_threads for k in range(n_threads + 1)]
+    rows = np.zeros((n_threads, max(1, len(fast))), dtype=np.int64)
+    for k in range(1, n_threads):
+        rows[k, :len(fast)] = rows[k - 1, :len(fast)] + np.bincount(group[cuts[k - 1]:cuts[k]] + 1,
+                                                                      minlength=len(fast) + 1)[1:]
+
+    def decode(k: int) -> int:
+        return int(lib.fh_tables(buf.ctypes.data, cuts[k], cuts[k + 1], s.ctypes.data, pk.hdr.ctypes.data,
+                                 pk.plen.ctypes.data, group.ctypes.data, t.ctypes.data, pk.sysid.ctypes.data,
+                                 pk.compid.ctypes.data, len(fast), size_a.ctypes.data, first_a.ctypes.data,
+                                 off_a.ctypes.data, wid_a.ctypes.data, outs_p, *metas_p, rows[k].ctypes.data))
+
+    if any(native.run_all([functools.partial(decode, k) for k in range(n_threads)], n_threads)):
         raise RecordingError("internal error: a message layout is longer than a MAVLink payload")
     tables = []
     for mid, cols, (tt, sy, co, rec) in zip(fast, columns, metas, strict=True):

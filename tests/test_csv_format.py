@@ -172,3 +172,25 @@ def test_replay_without_an_output_is_one_line(flight_a_plain):
                          text=True, cwd=ROOT)
     assert out.returncode == 2
     assert out.stderr.strip().count("\n") == 0 and "--csv" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_pieces_formatted_in_threads(threads):
+    """The pieces formatted ahead by worker threads (the compiled writer; the numpy path has one
+    thread) are the reference text, in order; closing early stops the workers."""
+    import threading
+
+    from companion.csv_format import iter_rows
+
+    rng = np.random.default_rng(17)
+    n = 5000
+    cols = [rng.normal(size=n) * 10.0 ** rng.integers(-8, 9, size=n), np.arange(n) - 2500,
+            np.array(["", "DISENGAGED", "NO_GYRO"], dtype=object)[rng.integers(0, 3, size=n)]]
+    fmts = ["%.9g", "%d", "%s"]
+    pieces = [bytes(p) for p in iter_rows(cols, fmts, block_rows=97, threads=threads)]
+    assert len(pieces) == -(-n // 97)
+    assert b"".join(pieces) == format_rows_reference(cols, fmts)
+    it = iter_rows(cols, fmts, block_rows=97, threads=threads)
+    assert bytes(next(it)) == format_rows_reference([c[:97] for c in cols], fmts)
+    it.close()
+    assert not [t for t in threading.enumerate() if t.name.startswith("csv-format")]

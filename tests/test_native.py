@@ -246,3 +246,56 @@ def test_scan_without_sse2_equals_the_sse2_scan(tmp_path):
                                       np.concatenate([getattr(p, f) for p in good_b]))
     np.testing.assert_array_equal(np.concatenate(other_a), np.concatenate(other_b))
     assert sum(len(p.s) for p in good_a) > 80_000 and sum(len(o) for o in other_a) > 100
+
+
+@pytest.mark.parametrize("n_threads", [1, 2, 3])
+def test_reader_in_threads_equals_numpy_path(tmp_path, monkeypatch, n_threads):
+    """The scan in 64 KiB pieces and the decoding in packet ranges, on 1-3 threads (each piece
+    and range by the same kernel call as in one thread), on flight_a with damage in many pieces:
+    the numpy path's recording."""
+    from companion import tlog_reader as tr
+
+    rng = np.random.default_rng(13)
+    data = bytearray(gzip.decompress(FLIGHT_A.read_bytes()))
+    for pos in rng.choice(len(data), size=60, replace=False):
+        data[pos] = 0xFD if pos % 2 else data[pos] ^ 0x10
+    path = tmp_path / "damaged.tlog"
+    path.write_bytes(bytes(data))
+    monkeypatch.setattr(tr, "_SCAN_CHUNK", 1 << 16)
+    monkeypatch.setattr(tr, "_PARALLEL_MIN_PACKETS", 0)
+    monkeypatch.setattr(native, "threads", lambda: n_threads)
+    fast, slow = _both(path, monkeypatch)
+    assert fast.skipped_packets > 0 and len(data) > 40 * (1 << 16)
+    assert_same_recording(fast, slow)
+
+
+def test_run_all_keeps_the_order_and_raises_the_first_error():
+    import threading
+    import time
+
+    seen = set()
+
+    def task(i: int) -> int:
+        seen.add(threading.get_ident())
+        time.sleep(0.001 * (i % 3))  # finished out of order
+        return i * i
+
+    tasks = [lambda i=i: task(i) for i in range(20)]
+    assert native.run_all(tasks, 3) == [i * i for i in range(20)]
+    assert len(seen) > 1
+    assert native.run_all(tasks, 1) == [i * i for i in range(20)]
+
+    def bad() -> int:
+        raise ValueError("task 5")
+
+    with pytest.raises(ValueError, match="task 5"):
+        native.run_all([*tasks[:5], bad, *tasks[6:]], 2)
+
+
+def test_threads_follow_the_cpus_allowed(monkeypatch):
+    import os
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})
+    assert native.threads() == 1
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(64)))
+    assert native.threads() == native.MAX_THREADS

@@ -29,7 +29,7 @@
 #define CRC_LEN 2
 
 /* ABI version: companion/native.py refuses a library whose fh_version differs */
-int32_t fh_version(void) { return 6; }
+int32_t fh_version(void) { return 7; }
 
 /* ------------------------------------------------------------------------------------------- */
 /* CRC-16/MCRF4XX (X.25). crc_tab[k][b]: the CRC contribution of byte b followed by k zero bytes
@@ -237,24 +237,24 @@ static inline void copy_bytes(uint8_t *o, const uint8_t *a, int64_t w) {
     }
 }
 
-/* The reader's tables in one pass over the packets in file order (_tables with _decode_fast):
- * packet i of group g = group[i] (-1: not here) becomes the next row r of that group's table:
- * t_out[g][r] = t_s[i], sysid/compid, record_out[g][r] = i, and each field f of the group
- * (fields first_field[g] .. first_field[g + 1] - 1) is the width[f] bytes at offset[f] of the
- * payload (buf[s[i] + hdr[i]:], plen[i] bytes, zero-padded to size[g]; longer: cut), copied to
- * out[f] + r * width[f] (little-endian wire order: the caller checks the machine is
- * little-endian). Returns 0, or -1 if a size is over 255. */
-int32_t fh_tables(const uint8_t *buf, int64_t n, const int64_t *s, const uint8_t *hdr, const int16_t *plen,
-                  const int32_t *group, const double *t_s, const uint8_t *sysid, const uint8_t *compid, int32_t ngroups,
-                  const int64_t *size, const int64_t *first_field, const int64_t *offset, const int64_t *width,
-                  uint8_t *const *out, double *const *t_out, uint8_t *const *sysid_out, uint8_t *const *compid_out,
-                  int64_t *const *record_out, int64_t *rows) {
+/* The reader's tables in one pass over the packets i0 <= i < i1 in file order (_tables with
+ * _decode_fast): packet i of group g = group[i] (-1: not here) becomes the next row r = rows[g]++
+ * of that group's table (rows[g] on entry: the group's packets before i0, so that ranges of
+ * packets can be done apart, in any order or at once): t_out[g][r] = t_s[i], sysid/compid,
+ * record_out[g][r] = i, and each field f of the group (fields first_field[g] ..
+ * first_field[g + 1] - 1) is the width[f] bytes at offset[f] of the payload (buf[s[i] + hdr[i]:],
+ * plen[i] bytes, zero-padded to size[g]; longer: cut), copied to out[f] + r * width[f]
+ * (little-endian wire order: the caller checks the machine is little-endian). Returns 0, or -1
+ * if a size is over 255. */
+int32_t fh_tables(const uint8_t *buf, int64_t i0, int64_t i1, const int64_t *s, const uint8_t *hdr,
+                  const int16_t *plen, const int32_t *group, const double *t_s, const uint8_t *sysid,
+                  const uint8_t *compid, int32_t ngroups, const int64_t *size, const int64_t *first_field,
+                  const int64_t *offset, const int64_t *width, uint8_t *const *out, double *const *t_out,
+                  uint8_t *const *sysid_out, uint8_t *const *compid_out, int64_t *const *record_out, int64_t *rows) {
     uint8_t padded[256];
-    for (int32_t g = 0; g < ngroups; g++) {
-        rows[g] = 0;
+    for (int32_t g = 0; g < ngroups; g++)
         if (size[g] > 255) return -1;
-    }
-    for (int64_t i = 0; i < n; i++) {
+    for (int64_t i = i0; i < i1; i++) {
         int32_t g = group[i];
         if (g < 0) continue;
         int64_t r = rows[g]++;
