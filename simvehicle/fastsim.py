@@ -27,15 +27,22 @@ What is modelled, exactly. The vehicle: everything the reference simulator
 (``simvehicle.sim.Simulator``, RK4 at 1 ms) does per frame: the effects ``MODELLED_EFFECTS``
 (every effect the config has today), turbulence, gyro and range noise drawn from each flight's
 own seeded Generator in the reference's order. The companion: ``companion.core.CompanionCore``'s
-step for the ``paper`` profile with ``EstimatorOptions.from_config`` as ``COMPANION_MODELLED``
-allows: the setpoint clip (``max_speed_m_s``), the per-frame gates (hold on a saturated or
-non-finite gyro, a range missing or outside the sensor's limits, a scene rate over
-``max_flow_rate_rad_s``), eq. 15 (``companion.estimator.velocity_from_flow``) with the IMU gyro
-sampled at the frame's time (so ``max_gyro_skew_s`` and ``range_timeout_s`` never hold a frame)
-and the PI law (``companion.controller``'s per-axis step with its anti-windup), always engaged,
-every frame new (no repeats), quality 255. With ``mavlink_quantization=True`` the companion sees
-what ``simvehicle.scenarios.fly`` feeds it through MAVLink (gyro in integer mrad/s, range in
-integer cm, times in integer µs), so the two agree frame for frame (tests/test_fastsim.py).
+step for the ``paper`` profile flying eq. 15 unfiltered on the IMU gyro (``gyro_source`` ``imu``
+or ``auto``, ``velocity_estimator`` ``eq15`` or ``auto``), always engaged, from the companion's
+own source compiled: the setpoint clip (``companion.rules.clip_speed``, ``max_speed_m_s``); of
+the per-frame gates (``core.GATE_CAUSES``) the two a simulated frame can fail, the gyro saturated
+or not finite (``rules.gyro_invalid``) and the range outside the sensor's limits
+(``rules.range_invalid``), then the spike gate (``rules.scene_spike``, ``max_flow_rate_rad_s``);
+eq. 15 (``companion.estimator.velocity_from_flow``) over the frame spacing
+(``estimator.frame_spacing_array``); the PI law (``companion.controller._axis``, anti-windup
+included), its integrator frozen on a held frame. A held frame is ``hold`` 1 (the cause is not
+kept). The other gates cannot fail here: every flow frame is finite, of quality 255, new and in
+order (no repeats, no reboot), and finds a gyro sample at its own time and a range of its own
+frame (so a ``max_gyro_skew_s`` or ``range_timeout_s`` >= 0 never holds one). With
+``mavlink_quantization=True`` the companion sees what ``simvehicle.scenarios.fly`` feeds it
+through MAVLink (gyro in integer mrad/s, range in integer cm, times in integer µs), so the two
+agree frame for frame: estimates, commands and holds, for each option value the engine flies and
+with the gates firing (tests/test_fastsim.py).
 
 Not modelled, and refused (``check_modelled``: a ConfigError naming the key, which ``simvehicle
 sweep`` prints as one line) rather than ignored: ``velocity_estimator = "tilt"`` or ``"kf"``,

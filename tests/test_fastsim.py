@@ -137,6 +137,49 @@ def test_matches_fly_frame_for_frame(paper_cfg):
     assert np.abs(ref["pitch_cmd_rad"]).max() == pytest.approx(math.radians(20.0))  # it saturated
 
 
+#: the step's options the fast engine models (``fastsim.COMPANION_MODELLED``), each value it flies
+MODELLED_STEP_OPTIONS = {
+    "gyro imu": {"companion": {"gyro_source": "imu"}},
+    "estimator auto": {"companion": {"velocity_estimator": "auto"}},
+    "estimator eq15, gyro auto": {"companion": {"velocity_estimator": "eq15", "gyro_source": "auto"}},
+    "no skew, no range timeout": {"companion": {"max_gyro_skew_s": 0.0, "range_timeout_s": 0.0}},
+    "setpoint clipped": {"companion": {"max_speed_m_s": 1.2}},
+    # the gates fire: the spike gate at 1.2 rad/s (the 2 m/s step at 1 m), the gyro's range at
+    # 30 deg/s (the step's pitch rate), the range beyond 1.3 m (the altitude profile's top)
+    "gates fire": {"companion": {"max_flow_rate_rad_s": 1.2}, "imu": {"gyro_range_deg_s": 30.0},
+                   "rangefinder": {"max_m": 1.3}},
+}
+
+
+@pytest.mark.parametrize("name", list(MODELLED_STEP_OPTIONS))
+def test_the_kernels_step_is_the_companions_for_every_modelled_option(paper_cfg, tmp_path, name):
+    """The compiled kernel's companion against ``CompanionCore`` (``scenarios.fly``: through
+    MAVLink and the live router, as live) for every option value the engine flies: identical
+    estimates, commands and holds, frame for frame. With the gates lowered, replay of ``fly``'s
+    recording names the holds: the spike, the gyro saturated and the range out of its limits."""
+    cfg = paper_cfg
+    for section, changes in MODELLED_STEP_OPTIONS[name].items():
+        cfg = C.replace_section(cfg, section, **changes)
+    fastsim.check_modelled(cfg)
+    sc = Scenario("mix", 4.0, lambda t: (2.0 if t >= 0.5 else 0.0, -1.0 if t >= 1.0 else 0.0),
+                  force=lambda t: (-4.0, 3.0) if t >= 2.0 else (0.0, 0.0),
+                  altitude=lambda t: 1.0 + 0.4 * math.sin(math.pi * t / 4.0))
+    ref = fly(cfg, sc, tlog=tmp_path / "fly.tlog")
+    fast = fastsim.fly_fast(cfg, sc)
+    for c in ("flow_x_counts", "flow_y_counts", "est_vx_m_s", "est_vy_m_s", "roll_cmd_rad", "pitch_cmd_rad",
+              "hold", "vx_set_m_s", "vy_set_m_s", "range_m", "t_s"):
+        np.testing.assert_array_equal(fast[c], ref[c], err_msg=c)
+    from companion.profiles import Profile
+    from companion.recording import load_recording
+    from companion.replay import replay
+
+    causes = set(replay(load_recording(tmp_path / "fly.tlog"), cfg, Profile.PAPER)["hold_cause"].tolist())
+    if name == "gates fire":
+        assert {"FLOW_SPIKE", "GYRO_INVALID", "RANGE_INVALID"} <= causes, causes
+    else:
+        assert causes == {""} and not ref["hold"].any()
+
+
 def _agreement(cfg, duration_s):
     sched = fastsim.demanding_flight(duration_s)
     ref = fastsim.reference_run(cfg, duration_s=duration_s, setpoint=sched["setpoints"], force=sched["forces"])
