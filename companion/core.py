@@ -698,9 +698,10 @@ def control_step(pi: tuple[float, float], filt: FilterState, usable: bool, engag
                  ) -> tuple[tuple[float, float], FilterState, float, float, float, float]:
     """``run_control`` for one frame, in plain Python (the live loop): the same
     ``tilt_filter_step`` and the same PI arithmetic (``controller._axis``); tested equal."""
-    if not engaged:
+    step, reset = rules.control_action(usable, engaged)
+    if reset:
         return (0.0, 0.0), FILTER_RESET, vx_m_s, vy_m_s, 0.0, 0.0
-    if not usable:
+    if not step:
         return pi, FILTER_RESET, vx_m_s, vy_m_s, 0.0, 0.0
     if tilt is not None:
         filt = tilt_filter_step(filt, vx_m_s, vy_m_s, roll_rad, pitch_rad, dt_s, gravity_m_s2=p.gravity_m_s2,
@@ -725,13 +726,12 @@ def run_control(pi: tuple[float, float], filt: FilterState, usable: np.ndarray, 
     level command. Not usable (held): integrals frozen, filter reset, level command. Otherwise
     the optional filter, then the PI law. Returns (pi, filt, vx_used, vy_used, roll_cmd_rad,
     pitch_cmd_rad)."""
-    active = usable & engaged
+    active, reset = rules.control_action(usable, engaged)
     if tilt is not None:
         filt, vx_m_s, vy_m_s = tilt_filter_columns(filt, active, vx_m_s, vy_m_s, roll_rad, pitch_rad, dt_s,
                                                    gravity_m_s2=p.gravity_m_s2, tilt=tilt)
     elif len(active):
         filt = FILTER_RESET
-    reset = ~engaged
     with np.errstate(all="ignore"):
         ex = np.where(active, vx_set_m_s - vx_m_s, 0.0)
         ey = np.where(active, vy_set_m_s - vy_m_s, 0.0)

@@ -138,3 +138,14 @@ def rotating(span_x_rad_s: Any, span_y_rad_s: Any, threshold_rad_s: float) -> An
     """A rate spanning more than the threshold on either axis across the window: the vehicle
     turned enough that a working sensor would have changed (NaN: no)."""
     return np.maximum(span_x_rad_s, span_y_rad_s) > threshold_rad_s
+
+
+# -- the sequential part (core.control_step, core.run_control) ------------------------------------
+
+
+def control_action(usable: Any, engaged: Any) -> tuple[Any, Any]:
+    """What a frame does to the PI integrals and the tilt filter: (step, reset). Usable and
+    engaged: step them. Not engaged: reset them (control restarts afresh at the next take-over).
+    Engaged but held: neither, the integrals frozen (and the filter restarts at the next usable
+    frame)."""
+    return usable & engaged, engaged == False  # noqa: E712
