@@ -10,9 +10,13 @@ scenarios drive; replay runs the column form of the same step over a whole recor
     core.set_engaged(True/False)   # the vehicle is / is not in the companion's mode
     out = core.on_flow(frame)      # one flow frame (profiles.FlowColumns of scalars) -> StepOutput
 
-A step has three parts, each in two forms: plain Python for one frame (the live loop, fast and
-bit-identical to the original paper-profile core) and numpy over whole columns (replay), tested
-equal frame for frame and bit for bit (``tests/test_replay.py``):
+A step has three parts, each run on one frame (the live loop, the scenarios) and over whole
+columns (replay). Each rule is written once, in ``companion.rules`` (the gates, the spike, the
+repeat test, the gyro scan, the cross-frame checks' bounds, what a held or disengaged frame does
+to the PI), and both forms call it; where a sequential state makes the column form a second
+algorithm (the gyro scan over all frames at once, the PI's linear stretches, the repeat walk),
+``tests/test_replay.py`` holds the two equal, bit for bit, on every option and every hold cause
+(docs/layout.md, "The step's rules"):
 
 1. inputs aligned as the live loop sees them: the last ``GYRO_HISTORY`` gyro samples and the
    latest range and attitude *received before* the flow message (``CompanionCore.on_*``;
