@@ -18,14 +18,77 @@ from __future__ import annotations
 import gzip
 import io
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, ItemsView, Iterator, Mapping, Sequence, ValuesView
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import numpy as np
 
 from companion.errors import RecordingError
+
+
+class LazyColumns(Mapping[str, np.ndarray]):
+    """A table's fields (name -> column, in ``names`` order), each column made the first time it
+    is asked for and then kept: ``make(names)`` returns the columns of those names, for every
+    row of the table as read. A reader whose tables are read for a few fields (replay, info)
+    decodes only those (issue 17: in a fresh process the pages of every column decoded cost
+    their zeroing). ``rows``: this mapping stands for those rows of ``make``'s columns (a
+    selection, kept lazy by ``select``). Pickled as a plain dict of every column."""
+
+    def __init__(self, names: Sequence[str], make: Callable[[list[str]], list[np.ndarray]],
+                 rows: np.ndarray | None = None, done: dict[str, np.ndarray] | None = None) -> None:
+        self._names = tuple(names)
+        self._known = frozenset(self._names)
+        self._make = make
+        self._rows = rows
+        self._done: dict[str, np.ndarray] = dict(done or {})
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        col = self._done.get(key)
+        if col is None:
+            if key not in self._known:
+                raise KeyError(key)
+            self._fill([key])
+            col = self._done[key]
+        return col
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._known
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    def _fill(self, keys: list[str]) -> None:
+        cols = self._make(keys)
+        if self._rows is not None:
+            cols = [c[self._rows] for c in cols]
+        self._done.update(zip(keys, cols, strict=True))
+
+    def _all(self) -> None:
+        missing = [k for k in self._names if k not in self._done]
+        if missing:
+            self._fill(missing)
+
+    def items(self) -> ItemsView[str, np.ndarray]:
+        self._all()  # in one go
+        return super().items()
+
+    def values(self) -> ValuesView[np.ndarray]:
+        self._all()
+        return super().values()
+
+    def select(self, mask: np.ndarray) -> LazyColumns:
+        """The rows ``mask`` (boolean or index array) selects, still lazy."""
+        picked = np.flatnonzero(mask) if np.asarray(mask).dtype == bool else np.asarray(mask)
+        rows = picked if self._rows is None else self._rows[picked]
+        return LazyColumns(self._names, self._make, rows, {k: v[mask] for k, v in self._done.items()})
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return dict, (dict(self.items()),)
 
 
 @dataclass
@@ -44,7 +107,7 @@ class MessageTable:
     sysid: np.ndarray
     compid: np.ndarray
     record: np.ndarray
-    fields: dict[str, np.ndarray] = field(default_factory=dict)
+    fields: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -63,7 +126,8 @@ class MessageTable:
             self.sysid[mask],
             self.compid[mask],
             self.record[mask],
-            {k: v[mask] for k, v in self.fields.items()},
+            self.fields.select(mask) if isinstance(self.fields, LazyColumns)
+            else {k: v[mask] for k, v in self.fields.items()},
         )
 
     def from_sender(self, sysid: int | None = None, compid: int | None = None) -> MessageTable:

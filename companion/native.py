@@ -30,7 +30,7 @@ from typing import TypeVar
 
 SOURCE = Path(__file__).resolve().parent / "native" / "kernels.c"
 #: the ABI the Python side expects (``fh_version`` in kernels.c)
-VERSION = 7
+VERSION = 8
 _FLAGS = ("-O2", "-std=c99", "-ffp-contract=off", "-shared", "-fPIC")
 _COMPILE_TIMEOUT_S = 120.0
 #: most threads the kernels run in at once (reading and formatting are memory-bound beyond a few)
@@ -95,6 +95,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.fh_scan.argtypes = (p, i64, i64, i64, p, p, i64, i64, p, p, p, p, p, p, p, p, p, i64, p, p)
     lib.fh_tables.restype = i32
     lib.fh_tables.argtypes = (p, i64, i64, p, p, p, p, p, p, p, i32, p, p, p, p, p, p, p, p, p, p)
+    lib.fh_fields.restype = i32
+    lib.fh_fields.argtypes = (p, i64, p, p, p, p, i64, i32, p, p, p)
     lib.fh_csv_rows.restype = i64
     lib.fh_csv_rows.argtypes = (i64, i32, p, p, p, p, p, p, i64, i64)
 

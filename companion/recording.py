@@ -12,6 +12,7 @@ which imports them); they are re-exported here, where the tools import them from
 
 from __future__ import annotations
 
+from collections.abc import Collection, Mapping
 from pathlib import Path
 
 from companion.columnar import (
@@ -34,13 +35,15 @@ __all__ = ["GZIP_SUFFIX", "MessageTable", "Recording", "gunzip", "is_gzip_path",
 
 
 def load_recording(path: str | Path, *, sensor_config: str | Path | None = None,
-                   progress: bool = False) -> Recording:
+                   progress: bool = False, fields: Mapping[str, Collection[str]] | None = None) -> Recording:
     """Read any supported recording into columns: .tlog, DataFlash .bin, PX4 .ulg, or a CSV
     described by a sensor column map (``sensor_config``), each also gzip-compressed (``.gz``).
     The format comes from the suffix (any case) under a trailing ``.gz``; anything else is read
     as a .tlog. ``progress``: a progress bar on stderr while a long recording is read (a .tlog:
     the reader's own, for files over ``tlog_reader.PROGRESS_MIN_BYTES``; the importers: by stage,
-    once the import has lasted ``companion.progress.DELAY_S``)."""
+    once the import has lasted ``companion.progress.DELAY_S``). ``fields``: for a .tlog, the
+    fields of each message the caller will read, decoded first (``tlog_reader.read_tlog``); the
+    values are the same either way."""
     p = Path(path)
     if not p.exists():
         raise RecordingError(f"recording not found: {p}")
@@ -69,4 +72,4 @@ def load_recording(path: str | Path, *, sensor_config: str | Path | None = None,
             return read_ulog(p, progress=done)
     from companion.tlog_reader import read_tlog
 
-    return read_tlog(p, progress=progress)
+    return read_tlog(p, progress=progress, fields=fields)

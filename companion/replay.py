@@ -125,6 +125,28 @@ TRUTH_MAX_GAP_S = 0.25
 #: a progress bar for writing the CSV above this many rows
 PROGRESS_MIN_FRAMES = 100_000
 
+#: the fields replay reads of each message: the .tlog reader decodes these with the rows, any
+#: other when it is first read (``tlog_reader.read_tlog``'s ``fields``), so this is for speed
+#: only (tests/test_lazy_fields.py holds it complete on recordings of the three profiles)
+_GYRO_FIELDS = ("xgyro", "ygyro", "zgyro", "xacc", "yacc", "zacc")
+REPLAY_FIELDS: dict[str, tuple[str, ...]] = {
+    "HEARTBEAT": ("type", "autopilot", "base_mode", "custom_mode"),
+    "OPTICAL_FLOW": ("time_usec", "flow_x", "flow_y", "flow_comp_m_x", "flow_comp_m_y", "quality", "flow_rate_x",
+                     "flow_rate_y"),
+    "OPTICAL_FLOW_RAD": ("time_usec", "integration_time_us", "integrated_x", "integrated_y", "integrated_xgyro",
+                         "integrated_ygyro", "quality"),
+    "RAW_IMU": ("time_usec", *_GYRO_FIELDS),
+    "SCALED_IMU": ("time_boot_ms", *_GYRO_FIELDS),
+    "HIGHRES_IMU": ("time_usec", *_GYRO_FIELDS),
+    "DISTANCE_SENSOR": ("time_boot_ms", "current_distance", "min_distance", "max_distance", "orientation"),
+    "ATTITUDE": ("time_boot_ms", "roll", "pitch", "yaw", "rollspeed", "pitchspeed"),
+    "LOCAL_POSITION_NED": ("time_boot_ms", "vx", "vy"),
+    "SET_ATTITUDE_TARGET": ("time_boot_ms", "q"),
+    "POSITION_TARGET_LOCAL_NED": ("time_boot_ms", "vx", "vy"),
+    "VISION_SPEED_ESTIMATE": ("usec", "x", "y"),
+    "SET_POSITION_TARGET_LOCAL_NED": ("target_component", "coordinate_frame", "vx", "vy"),
+}
+
 #: the CSV's columns, in order (truth and recorded columns only when the recording has them)
 CSV_COLUMNS = (
     "t_s", "vx_m_s", "vy_m_s", "roll_cmd_rad", "pitch_cmd_rad", "frame_time_s", "dt_s", "vx_set_m_s",
@@ -700,7 +722,7 @@ def run_cli(args: argparse.Namespace) -> int:
         check_output(args.plot, "--plot")
     cfg = load_config(args.config)
     rec = load_recording(args.recording, sensor_config=getattr(args, "sensor_config", None),
-                         progress=sys.stderr.isatty())
+                         progress=sys.stderr.isatty(), fields=REPLAY_FIELDS)
     if args.profile:
         profile = Profile(args.profile)
         why = "given"

@@ -39,7 +39,7 @@ import functools
 import re
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -48,7 +48,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion import native
-from companion.columnar import MessageTable, Recording, is_gzip_path, read_recording_bytes
+from companion.columnar import LazyColumns, MessageTable, Recording, is_gzip_path, read_recording_bytes
 from companion.errors import RecordingError
 
 STX_V1 = 0xFE
@@ -73,6 +73,8 @@ _CRC_BLOCK_BYTES = 1 << 22
 _SCAN_CHUNK = 1 << 23
 #: packets from which the compiled decoding is shared among threads (below, starting them costs more)
 _PARALLEL_MIN_PACKETS = 200_000
+#: file bytes from which the compiled scan is shared among threads
+_PARALLEL_MIN_BYTES = 1 << 23
 #: bytes of payload rows decoded per block
 _DECODE_BLOCK_BYTES = 1 << 20
 #: the CRC is computed on rows whose width is a multiple of this many bytes (8: see _KEEP_FROM)
@@ -802,46 +804,76 @@ def _pass1_native(lib: Any, buf: np.ndarray, n_bytes: int, progress: _Progress
                   ) -> tuple[list[_Packets], list[np.ndarray]]:
     """Pass 1 of ``_find_packets`` by the compiled kernel (``fh_scan`` in companion/native/kernels.c,
     the numpy pass candidate by candidate): the good packets, and the candidates that fit but are
-    not chained. Each candidate is judged on its own, so the file is scanned in pieces of
-    ``_SCAN_CHUNK`` bytes, on ``native.threads()`` threads, and the pieces' findings put in file
-    order: the same as one scan from start to end."""
+    not chained. Each candidate is judged on its own, so the file is scanned in as many ranges as
+    ``native.threads()`` (files from ``_PARALLEL_MIN_BYTES``), one per thread, and the ranges'
+    findings put in file order: the same as one scan from start to end. The first range's arrays
+    are sized for the whole file and the others' findings copied in after its own (one copy of
+    the later ranges' packets, not of all: in a fresh process every new page costs its zeroing)."""
+    n_threads = native.threads() if n_bytes >= _PARALLEL_MIN_BYTES else 1
+    cuts = [TIME_HEADER_LEN + (n_bytes - TIME_HEADER_LEN) * k // n_threads for k in range(n_threads + 1)]
     lock = threading.Lock()
-    chunks = range(TIME_HEADER_LEN, n_bytes, _SCAN_CHUNK)
 
-    def scan(a: int) -> tuple[list[_Packets], list[np.ndarray]]:
-        b = min(a + _SCAN_CHUNK, n_bytes)
-        found = _scan_native(lib, buf, n_bytes, a, b)
-        with lock:
-            progress.advance(60.0 * (b - a) / max(1, n_bytes - TIME_HEADER_LEN))
-        return found
+    def scan(k: int) -> list[tuple[list[np.ndarray], int, int]]:
+        return _scan_range(lib, buf, n_bytes, cuts[k], cuts[k + 1], n_bytes if k == 0 else cuts[k + 1],
+                           progress, lock)
 
-    parts = native.run_all([functools.partial(scan, a) for a in chunks], native.threads())
-    return [g for good, _ in parts for g in good], [o for _, other in parts for o in other]
+    parts = [part for found in native.run_all([functools.partial(scan, k) for k in range(n_threads)], n_threads)
+             for part in found]
+    nf = len(_Packets._FIELDS)
+    good = _append_into_first([(arrays[:nf], n) for arrays, n, _ in parts])
+    other = _append_into_first([(arrays[nf:], n) for arrays, _, n in parts])
+    return [_Packets(*arrays) for arrays in good], [arrays[0] for arrays in other]
 
 
-def _scan_native(lib: Any, buf: np.ndarray, n_bytes: int, pos: int, stop: int
-                 ) -> tuple[list[_Packets], list[np.ndarray]]:
-    """``fh_scan`` over the candidates in [pos, stop). The outputs are sized for a record every
-    16 bytes (the shortest record: more is possible only with overlapping candidates, and then
-    the scan resumes into new arrays); pages never written are never touched."""
+def _scan_range(lib: Any, buf: np.ndarray, n_bytes: int, pos: int, stop: int, sized_for: int, progress: _Progress,
+                lock: threading.Lock) -> list[tuple[list[np.ndarray], int, int]]:
+    """``fh_scan`` over the candidates in [pos, stop), in ``_SCAN_CHUNK`` steps (for the progress
+    bar), into arrays sized for a record every 16 bytes of [pos, sized_for) (the shortest record:
+    more is possible only with overlapping candidates, and then the scan goes on in new arrays);
+    pages never written are never touched. Returns each set of arrays used (the ``_Packets``
+    fields, then the other candidates) with its counts of good packets and other candidates."""
     known_tab, extra_tab = _crc_extra_lookup()
     known_u8 = known_tab.view(np.uint8)
-    good_parts: list[_Packets] = []
-    other_parts: list[np.ndarray] = []
     n_good = ctypes.c_int64()
     n_other = ctypes.c_int64()
+    out: list[tuple[list[np.ndarray], int, int]] = []
     while pos < stop:
-        cap = (stop - pos) // 16 + 64
-        cols = _Packets(np.empty(cap, np.int64), np.empty(cap, np.uint8), np.empty(cap, np.int16),
-                        np.empty(cap, np.int16), np.empty(cap, np.int32), np.empty(cap, np.uint8),
-                        np.empty(cap, np.uint8), np.empty(cap, np.uint64))
-        other = np.empty(cap, np.int64)
-        pos = lib.fh_scan(buf.ctypes.data, n_bytes, pos, stop, known_u8.ctypes.data, extra_tab.ctypes.data,
-                          len(known_tab), cap, *(getattr(cols, f).ctypes.data for f in _Packets._FIELDS),
-                          ctypes.byref(n_good), cap, other.ctypes.data, ctypes.byref(n_other))
-        good_parts.append(_Packets(*(getattr(cols, f)[:n_good.value] for f in _Packets._FIELDS)))
-        other_parts.append(other[:n_other.value])
-    return good_parts, other_parts
+        cap = (sized_for - pos) // 16 + 64
+        arrays = [np.empty(cap, np.int64), np.empty(cap, np.uint8), np.empty(cap, np.int16), np.empty(cap, np.int16),
+                  np.empty(cap, np.int32), np.empty(cap, np.uint8), np.empty(cap, np.uint8), np.empty(cap, np.uint64),
+                  np.empty(cap, np.int64)]
+        done_good = done_other = 0
+        while pos < stop and done_good < cap and done_other < cap:
+            step = min(pos + _SCAN_CHUNK, stop)
+            reached = lib.fh_scan(buf.ctypes.data, n_bytes, pos, step, known_u8.ctypes.data, extra_tab.ctypes.data,
+                                  len(known_tab), cap - done_good,
+                                  *(a[done_good:].ctypes.data for a in arrays[:-1]), ctypes.byref(n_good),
+                                  cap - done_other, arrays[-1][done_other:].ctypes.data, ctypes.byref(n_other))
+            done_good += n_good.value
+            done_other += n_other.value
+            with lock:
+                progress.advance(60.0 * (reached - pos) / max(1, n_bytes - TIME_HEADER_LEN))
+            pos = reached
+        out.append((arrays, done_good, done_other))
+    return out
+
+
+def _append_into_first(parts: list[tuple[list[np.ndarray], int]]) -> list[list[np.ndarray]]:
+    """The rows of ``parts`` (each: arrays of a common capacity, the first ``n`` rows used) in
+    order, as few sets of arrays as may be: the later parts' rows are copied in after the first's
+    as long as its arrays have room."""
+    if not parts:
+        return []
+    first, used = parts[0]
+    rest: list[list[np.ndarray]] = []
+    for arrays, n in parts[1:]:
+        if not rest and used + n <= len(first[0]):
+            for dst, src in zip(first, arrays, strict=True):
+                dst[used:used + n] = src[:n]
+            used += n
+        else:
+            rest.append([a[:n] for a in arrays])
+    return [[a[:used] for a in first], *rest]
 
 
 def _find_packets(buf: np.ndarray, n_bytes: int, progress: _Progress
@@ -956,12 +988,13 @@ def _notes(damage: _Damage, backwards: int, back_max_s: float, repaired_times: i
     return notes
 
 
-def _tables(buf: np.ndarray, pk: _Packets, t_s: np.ndarray, progress: _Progress
-            ) -> dict[str, MessageTable]:
-    """One MessageTable per message type, in order of first appearance."""
+def _tables(buf: np.ndarray, pk: _Packets, t_s: np.ndarray, progress: _Progress,
+            fields: Mapping[str, Collection[str]] | None = None) -> dict[str, MessageTable]:
+    """One MessageTable per message type, in order of first appearance (``fields``: as
+    ``read_tlog``'s)."""
     lib = native.kernels() if sys.byteorder == "little" else None
     if lib is not None and len(pk.s):
-        return _tables_native(lib, buf, pk, t_s, progress)
+        return _tables_native(lib, buf, pk, t_s, progress, fields)
     return _tables_numpy(buf, pk, t_s, progress)
 
 
@@ -1001,11 +1034,17 @@ def _tables_numpy(buf: np.ndarray, pk: _Packets, t_s: np.ndarray, progress: _Pro
     return tables
 
 
-def _tables_native(lib: Any, buf: np.ndarray, pk: _Packets, t_s: np.ndarray, progress: _Progress
-                   ) -> dict[str, MessageTable]:
-    """``_tables_numpy`` with the types the fast path lays out decoded by the compiled kernel
-    (``fh_tables``: one pass over the packets in file order, each packet's fields copied straight
-    into its table's columns); the other types (no numpy layout, unknown ids) by ``_tables_numpy``."""
+def _tables_native(lib: Any, buf: np.ndarray, pk: _Packets, t_s: np.ndarray, progress: _Progress,
+                   fields: Mapping[str, Collection[str]] | None = None) -> dict[str, MessageTable]:
+    """``_tables_numpy`` with the types the fast path lays out made by the compiled kernel
+    ``fh_tables``: one pass over the packets in file order (shared among threads in ranges of
+    packets), each packet's time, sender, record and fields copied straight into its table's
+    columns; the other types (no numpy layout, unknown ids) by ``_tables_numpy``.
+
+    ``fields``: message name -> the fields to decode in that pass; every other field of the
+    type is decoded when first asked for (``columnar.LazyColumns``, by ``fh_fields`` from the
+    packets the rows point at: ``buf`` and the packets' positions are kept for that while the
+    table lives). None: every field in the pass."""
     n = len(pk.s)
     top = int(pk.msgid.max()) + 1
     counts = np.bincount(pk.msgid, minlength=top)
@@ -1018,11 +1057,15 @@ def _tables_native(lib: Any, buf: np.ndarray, pk: _Packets, t_s: np.ndarray, pro
     # pages (numpy asks for them from 4 MB on), where many separate columns would each fault in
     # their own 4 KiB pages: a third of the decoding time in a fresh process
     shapes: list[tuple[int, str, np.dtype, int, int]] = []  # (group, field, dtype, wire offset, rows)
+    eager: list[tuple[str, ...]] = []
     for g, mid in enumerate(fast):
         lay = layout_of(mid)
         assert lay is not None and lay.dtype is not None
         k = int(counts[mid])
-        for name in lay.fieldnames:
+        wanted = lay.fieldnames if fields is None else tuple(f for f in lay.fieldnames
+                                                             if f in fields.get(lay.name, ()))
+        eager.append(wanted)
+        for name in wanted:
             sub, off = lay.dtype.fields[name][:2]  # type: ignore[index]
             shapes.append((g, name, sub, off, k))
         for name, dt in (("\0t", np.dtype(np.float64)), ("\0sysid", np.dtype(np.uint8)),
@@ -1042,11 +1085,11 @@ def _tables_native(lib: Any, buf: np.ndarray, pk: _Packets, t_s: np.ndarray, pro
             offsets.append(off)
             widths.append(dt.itemsize)
             outs.append(col.ctypes.data)
-    for mid in fast:
+    for mid, wanted in zip(fast, eager, strict=True):
         lay = layout_of(mid)
         assert lay is not None
         sizes.append(lay.size)
-        first_field.append(first_field[-1] + len(lay.fieldnames))
+        first_field.append(first_field[-1] + len(wanted))
     metas = [tuple(cols.pop(k) for k in ("\0t", "\0sysid", "\0compid", "\0record")) for cols in columns]
 
     def ints(values: list[int]) -> np.ndarray:
@@ -1057,6 +1100,7 @@ def _tables_native(lib: Any, buf: np.ndarray, pk: _Packets, t_s: np.ndarray, pro
 
     size_a, first_a, off_a, wid_a = ints(sizes), ints(first_field), ints(offsets), ints(widths)
     s = np.ascontiguousarray(pk.s, dtype=np.int64)
+    hdr, plen = pk.hdr, pk.plen
     t = np.ascontiguousarray(t_s, dtype=np.float64)
     outs_p, metas_p = ptrs(outs), [ptrs([m[j].ctypes.data for m in metas]) for j in range(4)]
     # the packets in ranges, one per thread, each range's rows of a type starting after the rows
@@ -1069,21 +1113,25 @@ def _tables_native(lib: Any, buf: np.ndarray, pk: _Packets, t_s: np.ndarray, pro
                                                                       minlength=len(fast) + 1)[1:]
 
     def decode(k: int) -> int:
-        return int(lib.fh_tables(buf.ctypes.data, cuts[k], cuts[k + 1], s.ctypes.data, pk.hdr.ctypes.data,
-                                 pk.plen.ctypes.data, group.ctypes.data, t.ctypes.data, pk.sysid.ctypes.data,
+        return int(lib.fh_tables(buf.ctypes.data, cuts[k], cuts[k + 1], s.ctypes.data, hdr.ctypes.data,
+                                 plen.ctypes.data, group.ctypes.data, t.ctypes.data, pk.sysid.ctypes.data,
                                  pk.compid.ctypes.data, len(fast), size_a.ctypes.data, first_a.ctypes.data,
                                  off_a.ctypes.data, wid_a.ctypes.data, outs_p, *metas_p, rows[k].ctypes.data))
 
     if any(native.run_all([functools.partial(decode, k) for k in range(n_threads)], n_threads)):
         raise RecordingError("internal error: a message layout is longer than a MAVLink payload")
     tables = []
-    for mid, cols, (tt, sy, co, rec) in zip(fast, columns, metas, strict=True):
+    for mid, cols, wanted, (tt, sy, co, rec) in zip(fast, columns, eager, metas, strict=True):
         lay = layout_of(mid)
         assert lay is not None
-        for name in lay.char_fields:
+        for name in lay.char_fields & set(wanted):
             cols[name] = _decode_chars(cols[name], lay.char_as_str)
-        tables.append(MessageTable(name=lay.name, t_s=tt, sysid=sy, compid=co, record=rec,
-                                   fields={name: cols[name] for name in lay.fieldnames}))
+        if len(wanted) == len(lay.fieldnames):
+            table_fields: Mapping[str, np.ndarray] = {name: cols[name] for name in lay.fieldnames}
+        else:
+            table_fields = LazyColumns(lay.fieldnames, functools.partial(_fields_native, lib, buf, s, hdr, plen, lay,
+                                                                         rec), done=cols)
+        tables.append(MessageTable(name=lay.name, t_s=tt, sysid=sy, compid=co, record=rec, fields=table_fields))
     rest = np.flatnonzero(group < 0)
     progress.advance(30.0 * (n - len(rest)) / n)
     if len(rest):
@@ -1097,7 +1145,31 @@ def _tables_native(lib: Any, buf: np.ndarray, pk: _Packets, t_s: np.ndarray, pro
     return {tab.name: tab for tab in tables}
 
 
-def read_tlog(path: str | Path, *, progress: bool = False) -> Recording:
+def _fields_native(lib: Any, buf: np.ndarray, s: np.ndarray, hdr: np.ndarray, plen: np.ndarray,
+                   lay: MessageLayout, record: np.ndarray, names: list[str]) -> list[np.ndarray]:
+    """The columns ``names`` of ``lay``'s messages, the packets ``record`` (indices into ``s``,
+    ``hdr``, ``plen``), by ``fh_fields``: what ``_decode_fast`` makes of them."""
+    assert lay.dtype is not None
+    n = len(record)
+    cols, offsets, widths = [], [], []
+    for name in names:
+        sub, off = lay.dtype.fields[name][:2]  # type: ignore[index]
+        cols.append(np.empty((n, *sub.shape), dtype=sub.base.newbyteorder("=")))
+        offsets.append(off)
+        widths.append(sub.itemsize)
+    outs = (ctypes.c_void_p * len(cols))(*(c.ctypes.data for c in cols))
+    rec = np.ascontiguousarray(record, dtype=np.int64)
+    off_a, wid_a = np.array(offsets, dtype=np.int64), np.array(widths, dtype=np.int64)  # alive for the call
+    code = lib.fh_fields(buf.ctypes.data, n, rec.ctypes.data, s.ctypes.data, hdr.ctypes.data, plen.ctypes.data,
+                         lay.size, len(cols), off_a.ctypes.data, wid_a.ctypes.data, outs)
+    if code != 0:
+        raise RecordingError("internal error: a message layout is longer than a MAVLink payload")
+    return [_decode_chars(c, lay.char_as_str) if name in lay.char_fields else c
+            for name, c in zip(names, cols, strict=True)]
+
+
+def read_tlog(path: str | Path, *, progress: bool = False, fields: Mapping[str, Collection[str]] | None = None
+              ) -> Recording:
     """Read a .tlog into a ``Recording`` (``source_format`` "tlog") of per-message columns; a
     ``.tlog.gz`` is decompressed in memory first (byte counts are of the decompressed file).
 
@@ -1108,7 +1180,10 @@ def read_tlog(path: str | Path, *, progress: bool = False) -> Recording:
     chain expected a packet, or the last record truncated); ``notes`` has one line per kind of
     damage. A record whose time header is damaged keeps its packet and takes the previous
     record's time (noted). ``progress``: a tqdm bar on stderr for files over
-    ``PROGRESS_MIN_BYTES``. Raises RecordingError when the file holds no good MAVLink packet.
+    ``PROGRESS_MIN_BYTES``. ``fields``: message name -> the fields a tool will read (replay's
+    ``REPLAY_FIELDS``), decoded with the rows; the others are decoded when first read (a
+    ``LazyColumns``: the same values, later; with the compiled kernels only). Default: every
+    field with the rows. Raises RecordingError when the file holds no good MAVLink packet.
     """
     p = Path(path)
     if not p.is_file():
@@ -1125,7 +1200,7 @@ def read_tlog(path: str | Path, *, progress: bool = False) -> Recording:
         backwards = int(np.count_nonzero(steps < 0))
         back_max = float(-steps.min()) if backwards else 0.0
         del steps
-        tables = _tables(buf, pk, t_s, bar)
+        tables = _tables(buf, pk, t_s, bar, fields)
     finally:
         bar.close()
     # a record starts 8 bytes before its STX, or where the packet before ends if that is later

@@ -263,6 +263,7 @@ def test_reader_in_threads_equals_numpy_path(tmp_path, monkeypatch, n_threads):
     path.write_bytes(bytes(data))
     monkeypatch.setattr(tr, "_SCAN_CHUNK", 1 << 16)
     monkeypatch.setattr(tr, "_PARALLEL_MIN_PACKETS", 0)
+    monkeypatch.setattr(tr, "_PARALLEL_MIN_BYTES", 0)
     monkeypatch.setattr(native, "threads", lambda: n_threads)
     fast, slow = _both(path, monkeypatch)
     assert fast.skipped_packets > 0 and len(data) > 40 * (1 << 16)

@@ -5,6 +5,8 @@
  * definition and the fallback when no C compiler is available:
  *   fh_scan       <- companion/tlog_reader.py, _find_packets pass 1 (_claimed_end, _parse_headers,
  *                    _check_crc), candidate by candidate;
+ *   fh_tables, fh_fields <- companion/tlog_reader.py, _tables_numpy (_decode_fast), the first
+ *                    the tables' rows, the second the fields asked for;
  *   fh_csv_rows   <- companion/csv_format.py, format_rows (itself Python's % formatting).
  * The tests hold each equal to the one it copies (tests/test_native.py). Loaded through ctypes by
  * companion/native.py, which compiles this file once with the system's C compiler.
@@ -29,7 +31,7 @@
 #define CRC_LEN 2
 
 /* ABI version: companion/native.py refuses a library whose fh_version differs */
-int32_t fh_version(void) { return 7; }
+int32_t fh_version(void) { return 8; }
 
 /* ------------------------------------------------------------------------------------------- */
 /* CRC-16/MCRF4XX (X.25). crc_tab[k][b]: the CRC contribution of byte b followed by k zero bytes
@@ -272,6 +274,33 @@ int32_t fh_tables(const uint8_t *buf, int64_t i0, int64_t i1, const int64_t *s, 
         }
         for (int64_t f = first_field[g]; f < first_field[g + 1]; f++)
             copy_bytes(out[f] + r * width[f], payload + offset[f], width[f]);
+    }
+    return 0;
+}
+
+/* Some fields of one message type's rows, decoded straight into their columns (the reader's
+ * columns made on first use: _tables_native's lazy fields): row r is packet i = record[r], whose
+ * payload is buf[s[i] + hdr[i]:], plen[i] bytes, zero-padded to size (longer: cut); field f (of
+ * nf) is the width[f] bytes at offset[f] of it, copied to out[f] + r * width[f] (little-endian
+ * wire order). The same bytes fh_tables copies for those fields. Returns 0, or -1 if a field
+ * lies outside the size or the size is over 255. */
+int32_t fh_fields(const uint8_t *buf, int64_t n, const int64_t *record, const int64_t *s, const uint8_t *hdr,
+                  const int16_t *plen, int64_t size, int32_t nf, const int64_t *offset, const int64_t *width,
+                  uint8_t *const *out) {
+    if (size > 255) return -1;
+    for (int32_t f = 0; f < nf; f++)
+        if (offset[f] < 0 || width[f] < 0 || offset[f] + width[f] > size) return -1;
+    uint8_t padded[256];
+    for (int64_t r = 0; r < n; r++) {
+        int64_t i = record[r];
+        const uint8_t *payload = buf + s[i] + hdr[i];
+        if (plen[i] < size) {
+            int64_t k = plen[i] > 0 ? plen[i] : 0;
+            memcpy(padded, payload, (size_t)k);
+            memset(padded + k, 0, (size_t)(size - k));
+            payload = padded;
+        }
+        for (int32_t f = 0; f < nf; f++) copy_bytes(out[f] + r * width[f], payload + offset[f], width[f]);
     }
     return 0;
 }
