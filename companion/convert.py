@@ -19,7 +19,8 @@ number kept:
 ``dt`` is the time the frame covers: the message's integration time when it states one (px4),
 else the spacing from the previous flow frame (``estimator.frame_spacing``). The body rate is the
 source message's own when it carries one (ardupilot, px4), else the gyro sample nearest the frame
-among the last ones received (RAW_IMU, SCALED_IMU or HIGHRES_IMU; 0 if none). Converting to
+among the last ones received (RAW_IMU, SCALED_IMU or HIGHRES_IMU, each by its own time field;
+within ``max_gyro_skew_s``, the companion's rule ``rules.gyro_scan``; 0 if none). Converting to
 ``paper`` quantizes the scene angle to Q (``--config``; the velocity then differs by at most
 Q / (2 dt) times the range); the other conversions are exact up to the float32 message fields.
 This is what makes the profile-equivalence test possible: the same flight in two conventions.
@@ -41,12 +42,13 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from companion.config import Config, load_config
 from companion.errors import ExitCode, FlowholdError, RecordingError
 from companion.estimator import frame_spacing
+from companion.inbound import gyro_time_s
 from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FieldView, Profile, detect_profile, flow_columns
 from companion.recording import load_recording, read_recording_bytes
+from companion.rules import covered_span, gyro_scan
 from companion.tlog_writer import TlogWriter, mav_encoder
 
 _HEADER = struct.Struct(">Q")
-_GYRO_SKEW_S = 0.015
 
 
 def _records(data: bytes, name: str) -> Iterator[tuple[int, bytes]]:
@@ -78,6 +80,7 @@ class _Converter:
     def __init__(self, cfg: Config, src: Profile, dst: Profile) -> None:
         self.q = cfg.flow_sensor.q_rad_per_count
         self.nominal_s = cfg.flow_sensor.frame_period_s
+        self.max_skew_s = cfg.companion.max_gyro_skew_s
         self.src, self.dst = src, dst
         self.prev_time_s: float | None = None
         self.gyro: deque[tuple[float, float, float]] = deque(maxlen=32)
@@ -85,17 +88,19 @@ class _Converter:
 
     def on_gyro(self, msg: Any) -> None:
         scale = GYRO_MESSAGES[msg.get_type()]
-        t = msg.time_usec * 1e-6 if hasattr(msg, "time_usec") else msg.time_boot_ms * 1e-3
-        self.gyro.append((t, msg.xgyro * scale, msg.ygyro * scale))
+        self.gyro.append((gyro_time_s(msg), msg.xgyro * scale, msg.ygyro * scale))
 
     def _body_rate(self, c: Any, time_s: float) -> tuple[float, float]:
         bx, by = float(c.body_x_rad_s), float(c.body_y_rad_s)
         if math.isfinite(bx) and math.isfinite(by):
             return bx, by
-        best, skew = (0.0, 0.0), _GYRO_SKEW_S
-        for t, gx, gy in reversed(self.gyro):
-            if abs(t - time_s) <= skew:
-                best, skew = (gx, gy), abs(t - time_s)
+        best, best_skew = (0.0, 0.0), self.max_skew_s
+        for t, gx, gy in reversed(self.gyro):  # the companion's rule: the nearest within the skew
+            skew, take, stop = gyro_scan(t, time_s, best_skew, self.max_skew_s)
+            if take:
+                best, best_skew = (gx, gy), skew
+            elif stop:
+                break
         return best
 
     def flow(self, msg: Any) -> Any:
@@ -104,9 +109,8 @@ class _Converter:
         t = float(c.time_s)
         dt = frame_spacing(self.prev_time_s, t, self.nominal_s)
         self.prev_time_s = t if math.isfinite(t) else self.prev_time_s
-        integ = float(c.integration_s)
         if c.increment:
-            span = integ if math.isfinite(integ) and integ > 0 else dt
+            span = float(covered_span(float(c.integration_s), dt))
             dphi_x, dphi_y = float(c.scene_x), float(c.scene_y)
         else:
             span = dt

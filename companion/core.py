@@ -293,9 +293,8 @@ def kalman_measurement(vx_m_s: float, vy_m_s: float, gyro_x_rad_s: float, gyro_y
 
 def kalman_span(integration_s: float, dt_s: float) -> float:
     """The time the flow of a frame covers: the integration time its message states, else the
-    frame spacing (``estimator.scene_rate``'s rule)."""
-    own = integration_s == integration_s and integration_s != math.inf and integration_s > 0.0
-    return integration_s if own else dt_s
+    frame spacing (``rules.covered_span``, ``estimator.scene_rate``'s too)."""
+    return float(rules.covered_span(integration_s, dt_s))
 
 
 def kalman_columns(kf: VelocityKalman, usable: np.ndarray, record: np.ndarray, time_s: np.ndarray,

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.rules import spacing
+from companion.rules import covered_span, spacing
 
 
 def velocity_from_flow(scene_rate_x_rad_s: Any, scene_rate_y_rad_s: Any, gyro_x_rad_s: Any,
@@ -36,8 +36,7 @@ def scene_rate(scene: Any, increment: bool, integration_s: Any, frame_dt_s: Any)
     """
     if not increment:
         return scene
-    dt = np.where(np.isfinite(integration_s) & (np.asarray(integration_s) > 0), integration_s, frame_dt_s)
-    return scene / dt
+    return scene / covered_span(integration_s, frame_dt_s)
 
 
 def scene_rate_scalar(scene: float, increment: bool, integration_s: float, frame_dt_s: float) -> float:

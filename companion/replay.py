@@ -76,7 +76,6 @@ from companion.core import (
     kalman_columns,
     kalman_measurement,
     kalman_settings,
-    kalman_span,
     latest_before,
     plausibility_columns,
     repeat_mask,
@@ -105,7 +104,7 @@ from companion.recording import (
     read_recording_bytes,
     recording_name,
 )
-from companion.rules import clip_speed
+from companion.rules import clip_speed, covered_span
 from companion.setpoint import decayed_setpoint
 from companion.signals import (
     companion_commands,
@@ -469,7 +468,7 @@ def _kalman(rec: Recording, sysid: int, cfg: Config, profile: Profile, options: 
     the samples the live core holds at that frame (``core.kalman_measurement``)."""
     settings = options.kalman or kalman_settings(cfg, profile)
     zx, zy = vx.copy(), vy.copy()
-    span = np.array([kalman_span(a, b) for a, b in zip(integration_s.tolist(), dt.tolist(), strict=True)])
+    span = covered_span(integration_s, dt)
     if gyro_hist is not None:
         g_t, g_x, g_y, first, last = gyro_hist
         rows = list(zip(g_t.tolist(), g_x.tolist(), g_y.tolist(), strict=True))

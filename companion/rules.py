@@ -69,6 +69,12 @@ def spacing(dt_s: Any, nominal_s: float) -> Any:
     return np.where((dt_s > 0.0) & (dt_s <= MAX_SPACING_FRAMES * nominal_s), dt_s, nominal_s)
 
 
+def covered_span(integration_s: Any, frame_dt_s: Any) -> Any:
+    """The time a frame's flow covers (s): the integration time its message states (finite and
+    > 0), else the frame spacing ``frame_dt_s``."""
+    return np.where(np.isfinite(integration_s) & (integration_s > 0.0), integration_s, frame_dt_s)
+
+
 def clip_speed(v_m_s: Any, max_m_s: float) -> Any:
     """A velocity setpoint clipped to +-``max_m_s`` on its axis."""
     return np.minimum(np.maximum(v_m_s, -max_m_s), max_m_s)
