@@ -4,6 +4,7 @@
 scenarios drive; replay runs the column form of the same step over a whole recording:
 
     core.on_gyro(t, gx, gy)        # RAW_IMU / SCALED_IMU / HIGHRES_IMU, rad/s, sensor time s
+    core.on_accel(t, fx, fy)       # the same messages' accelerometer, m/s^2 body FRD (the Kalman filter's input)
     core.on_range(t, range_m)      # DISTANCE_SENSOR facing down, m
     core.on_attitude(t, roll, pitch)  # ATTITUDE, rad (used only by the optional tilt filter)
     core.set_setpoint(vx, vy)      # body-frame velocity setpoint, m/s
@@ -300,22 +301,37 @@ def kalman_span(integration_s: float, dt_s: float) -> float:
 def kalman_columns(kf: VelocityKalman, usable: np.ndarray, record: np.ndarray, time_s: np.ndarray,
                    span_s: np.ndarray, z_x: np.ndarray, z_y: np.ndarray, range_m: np.ndarray,
                    att_record: np.ndarray, att_time_s: np.ndarray, att_roll_rad: np.ndarray,
-                   att_pitch_rad: np.ndarray, att_roll_rate_rad_s: np.ndarray, att_pitch_rate_rad_s: np.ndarray
+                   att_pitch_rad: np.ndarray, att_roll_rate_rad_s: np.ndarray, att_pitch_rate_rad_s: np.ndarray,
+                   accel: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``VelocityKalman`` over a recording's frames as the live core runs it: before each frame
-    every ATTITUDE received before it (``record`` order) goes to ``on_attitude``; each usable
-    frame is ``update``d. Returns (vx, vy, var_x, var_y), NaN on the frames not usable."""
+    every ATTITUDE received before it (``record`` order) goes to ``on_attitude`` and, with
+    ``accel`` (record, time s, body x and y specific force m/s^2 of the gyro messages,
+    ``profiles.accel_m_s2``), every accelerometer sample to ``on_accel``, the two in the order
+    they were received; each usable frame is ``update``d. Returns (vx, vy, var_x, var_y), NaN
+    on the frames not usable."""
     n = len(time_s)
     out = np.full((4, n), np.nan)
-    j_end = np.searchsorted(att_record, record, side="left")  # attitude rows received before each frame
     att = [a.tolist() for a in (att_time_s, att_roll_rad, att_pitch_rad, att_roll_rate_rad_s, att_pitch_rate_rad_s)]
     rows = list(zip(*att, strict=True))
+    in_rec = att_record
+    if accel is not None and len(accel[0]):  # attitude and accelerometer rows merged by arrival
+        acc_rows = list(zip(*(a.tolist() for a in accel[1:]), strict=True))
+        in_rec = np.concatenate([att_record, accel[0]])
+        order = np.argsort(in_rec, kind="stable")
+        in_rec = in_rec[order]
+        tagged = [(kf.on_attitude, r) for r in rows] + [(kf.on_accel, r) for r in acc_rows]
+        calls = [tagged[k] for k in order.tolist()]
+    else:
+        calls = [(kf.on_attitude, r) for r in rows]
+    j_end = np.searchsorted(in_rec, record, side="left")  # rows received before each frame
     cols = [c.tolist() for c in (time_s, span_s, z_x, z_y, range_m)]
     j = 0
-    on_att, update = kf.on_attitude, kf.update
+    update = kf.update
     for i, (ok, end) in enumerate(zip(usable.tolist(), j_end.tolist(), strict=True)):
         while j < end:
-            on_att(*rows[j])
+            fn, row = calls[j]
+            fn(*row)
             j += 1
         if ok:
             out[:, i] = update(cols[0][i], cols[1][i], cols[2][i], cols[3][i], cols[4][i])
@@ -1029,6 +1045,11 @@ class CompanionCore:
         if self._gyro and time_s < self._gyro[-1][0] - GYRO_REBOOT_S:  # the vehicle rebooted
             self._gyro.clear()
         self._gyro.append((time_s, gyro_x_rad_s, gyro_y_rad_s))
+
+    def on_accel(self, time_s: float, f_x_m_s2: float, f_y_m_s2: float) -> None:
+        """A gyro message's accelerometer (``profiles.accel_m_s2``: body FRD specific force, m/s^2):
+        the Kalman filter's input (``VelocityKalman.on_accel``), fed whatever the estimator."""
+        self.kalman.on_accel(float(time_s), float(f_x_m_s2), float(f_y_m_s2))
 
     def on_range(self, time_s: float, range_m: float) -> None:
         self._range = (time_s, range_m)

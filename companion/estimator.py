@@ -128,6 +128,17 @@ SQRT3 = math.sqrt(3.0)
 PHASE_LOST = 1e-9
 #: the smallest probability whose logarithm is taken
 TINY = 1e-300
+#: accelerometer samples kept (5 s at 50 Hz, as the attitude's)
+ACCEL_HISTORY = 256
+#: the accelerometer's measured noise (second differences) uses samples at most this far apart
+ACCEL_MAX_SPACING_S = 0.1
+#: with the accelerometer as the input, the drag rate holds only what the input misses in proportion to
+#: the velocity (its scale factor and filter: SITL's RAW_IMU reads the truth's acceleration with a slope
+#: of 0.97): 1 sigma a tenth of the prior without it
+ACCEL_DRAG_PRIOR_PER_S = 0.1 * DRAG_PRIOR_PER_S
+#: RAW_IMU's and SCALED_IMU's accelerometer resolution (1 milli-g): its rounding, uniform over it,
+#: is the least white noise a sample is taken to have
+ACCEL_RESOLUTION_M_S2 = 9.80665e-3
 
 
 def _phi(t: float) -> float:
@@ -239,6 +250,8 @@ class KalmanSettings:
     quantization_rad: float = 0.0
     step_rate_per_s: float = STEP_RATE_PER_S
     step_sigma_m_s2: float = STEP_SIGMA_M_S2
+    use_accelerometer: bool = True
+    accel_noise_m_s2: float = 0.0
 
     @classmethod
     def from_config(cls, cfg: Any, counts: bool) -> KalmanSettings:
@@ -255,7 +268,9 @@ class KalmanSettings:
                    range_noise_m=math.hypot(rf.noise_std_m, rf.resolution_m / math.sqrt(12.0)),
                    accel_psd=(g * ATTITUDE_NOISE_RAD) ** 2 * t,
                    disturbance_psd=DISTURBANCE_DRIFT_M_S2 ** 2 / DISTURBANCE_DRIFT_S,
-                   drag_psd=DRAG_DRIFT_PER_S_SQRT_S ** 2)
+                   drag_psd=DRAG_DRIFT_PER_S_SQRT_S ** 2,
+                   use_accelerometer=cfg.companion.use_accelerometer,
+                   accel_noise_m_s2=cfg.imu.accel_noise_density_m_s2_sqrt_hz * math.sqrt(cfg.imu.rate_hz))
 
     def sample_time_s(self, time_s: float, span_s: float) -> float:
         """When the flow sample of a message stamped ``time_s`` covering ``span_s`` was taken."""
@@ -289,7 +304,7 @@ class _Axis:
 
     __slots__ = ("v", "b", "c", "e", "p00", "p01", "p02", "p03", "p11", "p12", "p13", "p22", "p23", "p33",
                  "ready", "steps", "mix", "z1", "z2", "t1", "t2", "r_data", "n_data", "nu", "nu_var", "p_step",
-                 "steps_found", "bank", "weights", "logw")
+                 "steps_found", "bank", "weights", "logw", "search")
 
     def __init__(self, s: KalmanSettings) -> None:
         self.b = 0.0
@@ -301,7 +316,25 @@ class _Axis:
         self.n_data = 0
         self.steps_found = 0
         self.logw = 0.0
+        self.search = True  # steps in the disturbance are searched for (``accelerometer_input``)
         self.restart(s)
+
+    def accelerometer_input(self) -> None:
+        """The accelerometer is the prediction's input: it measures the gusts with every other
+        force, so no step in the disturbance is searched for from now on: what the disturbance
+        state still holds (the accelerometer's bias, the attitude's trim, second-order terms)
+        drifts slowly, and a gust, which the step prior describes, is in the input; the drag rate
+        holds only what the input misses in proportion to the velocity: its standard deviation is
+        brought to ``ACCEL_DRAG_PRIOR_PER_S`` if larger (its covariances scaled with it)
+        (docs/estimator.md)."""
+        self.search = False
+        self.steps, self.mix, self.bank, self.weights = [], [], [], []
+        self.p_step = 0.0
+        k = min(1.0, ACCEL_DRAG_PRIOR_PER_S / math.sqrt(self.p22)) if self.p22 > 0.0 else 1.0
+        self.p02 *= k
+        self.p12 *= k
+        self.p23 *= k
+        self.p22 *= k * k
 
     def unlink(self, s: KalmanSettings) -> None:
         """The previous frame's quantization error is not known (no frame just before this one)."""
@@ -336,9 +369,13 @@ class _Axis:
         self.e, self.p03, self.p13, self.p23, self.p33 = 0.0, -g * q2, 0.0, 0.0, q2
         self.ready = True
 
-    def predict(self, accel_integral: float, dt: float, s: KalmanSettings, search: bool = True) -> None:
-        """Over ``dt`` s with the tilt acceleration's integral ``accel_integral`` (m/s); a new
-        candidate step starts in this interval (``search``: this is the no-step state)."""
+    def predict(self, accel_integral: float, dt: float, s: KalmanSettings, search: bool = True,
+                input_psd: float = 0.0, input_var: float = 0.0) -> None:
+        """Over ``dt`` s with the tilt acceleration's integral ``accel_integral`` (m/s; with the
+        accelerometer's, ``VelocityKalman._input``); a new candidate step starts in this interval
+        (``search``: this is the no-step state). ``input_psd``: the accelerometer's white noise
+        on the velocity (m^2/s^3), ``input_var`` its sampling error over the interval (m^2/s^2),
+        0 without one."""
         if dt <= 0.0:
             return
         v, b, c = self.v, self.b, self.c
@@ -351,6 +388,8 @@ class _Axis:
         r2 = f0 * p02 + f1 * p12 + f2 * p22
         qb = s.disturbance_psd
         self.p00 = f0 * r0 + f1 * r1 + f2 * r2 + s.accel_psd * dt + qb * dt ** 3 / 3.0
+        if input_psd or input_var:
+            self.p00 += input_psd * dt + input_var
         self.p01 = r1 + qb * dt * dt / 2.0
         self.p02 = r2
         self.p03 = f0 * self.p03 + f1 * self.p13 + f2 * self.p23
@@ -362,7 +401,7 @@ class _Axis:
         if s.quantization_rad > 0.0:  # counts: a filter per candidate (``_fuse_counts``)
             bank = self.bank
             for hyp in bank:
-                hyp.predict(accel_integral, dt, s, search=False)
+                hyp.predict(accel_integral, dt, s, search=False, input_psd=input_psd, input_var=input_var)
             bank.append(self._onset(dt, s))
             if len(bank) > window:
                 del bank[0]
@@ -382,7 +421,8 @@ class _Axis:
         log of its prior probability as its weight."""
         h = object.__new__(_Axis)
         for name in ("v", "b", "c", "e", "p00", "p01", "p02", "p03", "p11", "p12", "p13", "p22", "p23", "p33",
-                     "ready", "z1", "z2", "t1", "t2", "r_data", "n_data", "nu", "nu_var", "p_step", "steps_found"):
+                     "ready", "z1", "z2", "t1", "t2", "r_data", "n_data", "nu", "nu_var", "p_step", "steps_found",
+                     "search"):
             setattr(h, name, getattr(self, name))
         h.steps, h.mix, h.bank, h.weights = [], [], [], []
         var = s.step_sigma_m_s2 ** 2
@@ -604,7 +644,8 @@ class _Axis:
         self.z2, self.t2, self.z1, self.t1 = self.z1, self.t1, z, t
         return self.r_data
 
-    def output(self, accel_integral: float, dt: float, s: KalmanSettings) -> tuple[float, float]:
+    def output(self, accel_integral: float, dt: float, s: KalmanSettings, input_psd: float = 0.0,
+               input_var: float = 0.0) -> tuple[float, float]:
         """The velocity and its variance ``dt`` s after the state's time, without changing the
         state: the posterior mean over no step and the candidate steps, its variance the mixture's
         plus that of a step too recent for any fused sample to show."""
@@ -613,12 +654,14 @@ class _Axis:
         var = (f0 * (f0 * self.p00 + f1 * self.p01 + f2 * self.p02) + f1 * (f0 * self.p01 + f1 * self.p11
                + f2 * self.p12) + f2 * (f0 * self.p02 + f1 * self.p12 + f2 * self.p22)
                + s.accel_psd * dt + (s.disturbance_psd + s.step_rate_per_s * s.step_sigma_m_s2 ** 2) * dt ** 3 / 3.0)
+        if input_psd or input_var:
+            var += input_psd * dt + input_var
         out = v + accel_integral + (b - c * v) * dt
         if self.bank:  # counts: the mixture of no step and the hypotheses
             m1 = (1.0 - self.p_step) * out
             m2 = (1.0 - self.p_step) * (var + out * out)
             for w, hyp in zip(self.weights, self.bank, strict=True):
-                o, vo = hyp.output(accel_integral, dt, s)
+                o, vo = hyp.output(accel_integral, dt, s, input_psd, input_var)
                 m1 += w * o
                 m2 += w * (vo + o * o)
             return m1, m2 - m1 * m1
@@ -660,7 +703,18 @@ class VelocityKalman:
     def __init__(self, settings: KalmanSettings) -> None:
         self.s = settings
         self.attitude: deque[tuple[float, float, float, float, float]] = deque(maxlen=ATTITUDE_HISTORY)
+        #: the accelerometer's horizontal non-gravitational acceleration (time s, x, y m/s^2), ``on_accel``
+        self.accel: deque[tuple[float, float, float]] = deque(maxlen=ACCEL_HISTORY)
+        #: whether the vehicle has shown an accelerometer (a reading other than the placeholder)
+        self.accel_seen = False
+        self._accel_noise_reset()
         self.reset()
+
+    def _accel_noise_reset(self) -> None:
+        self.acc_r = [math.nan, math.nan]  # measured white noise per axis (m^2/s^4)
+        self.acc_n = 0
+        self.acc_spacing_s = math.nan
+        self.input_psd = (0.0, 0.0)  # the accelerometer's white noise on the velocity, per axis (m^2/s^3)
 
     def reset(self) -> None:
         """Back to the priors (a new vehicle or a rebooted one); the attitude history is kept."""
@@ -688,6 +742,132 @@ class VelocityKalman:
                     h[-1] = (time_s, ax, ay, dax, day)
                 return
         h.append((time_s, ax, ay, dax, day))
+
+    def on_accel(self, time_s: float, f_x_m_s2: float, f_y_m_s2: float) -> None:
+        """One accelerometer sample (a gyro message's accelerometer, ``profiles.accel_m_s2``: body
+        FRD specific force, m/s^2, at the message's own time): to first order in the tilt the
+        horizontal non-gravitational force over mass (wind, gust, drag), which the attitude's
+        ``g tan(tilt)`` leaves out (eq. 28's ``F_W / m``), taken as ``f / cos(tilt)`` per axis with
+        the newest attitude (exact for one axis of the plant). It is the prediction's input
+        (``_input``), with its white noise (``input_psd``). Ignored: a non-finite sample (clipped,
+        NaN), every sample while the settings say not to use it, and every sample until the
+        vehicle shows a horizontal reading other than exactly 0: a vehicle without an accelerometer
+        sends the (0, 0, -1 g) placeholder, and the filter is then exactly the one without."""
+        if not (self.s.use_accelerometer and math.isfinite(time_s) and math.isfinite(f_x_m_s2)
+                and math.isfinite(f_y_m_s2)):
+            return
+        if not self.accel_seen:
+            if f_x_m_s2 == 0.0 and f_y_m_s2 == 0.0:
+                return
+            self.accel_seen = True
+        h = self.accel
+        if h:
+            last = h[-1][0]
+            if time_s < last - CLOCK_RESTART_S:  # the vehicle's clock restarted
+                h.clear()
+                self._accel_noise_reset()
+            elif time_s <= last:  # the same time again (replace) or slightly out of order (drop)
+                if time_s == last:
+                    h[-1] = (time_s, *self._horizontal(f_x_m_s2, f_y_m_s2))
+                return
+        a_x, a_y = self._horizontal(f_x_m_s2, f_y_m_s2)
+        self._accel_noise(time_s, a_x, a_y)
+        h.append((time_s, a_x, a_y))
+        if self.acc_n == 0:  # not measured yet: the config's noise at the frame spacing
+            q = self._accel_noise_floor() * self.s.nominal_frame_s
+            self.input_psd = (q, q)
+
+    def _horizontal(self, f_x: float, f_y: float) -> tuple[float, float]:
+        """The specific force over the cosine of the newest attitude's tilt, per axis."""
+        if not self.attitude:
+            return f_x, f_y
+        g = self.s.gravity_m_s2
+        _, tx, ty = self.attitude[-1][:3]  # -g tan(pitch), g tan(roll): 1 / cos = sqrt(1 + tan^2)
+        return f_x * math.sqrt(1.0 + (tx / g) ** 2), f_y * math.sqrt(1.0 + (ty / g) ** 2)
+
+    def _accel_noise(self, t: float, a_x: float, a_y: float) -> None:
+        """The accelerometer's white noise per axis: the larger of the config's
+        (``KalmanSettings.accel_noise_m_s2``) and the one measured on the samples, the mean of
+        (second difference)^2 / 6 (a running mean, then ``NOISE_AVERAGE_S`` of memory, as the
+        flow's ``_Axis.measured_noise``), over consecutive samples at most
+        ``ACCEL_MAX_SPACING_S`` apart; on the velocity it is white of PSD noise^2 x the sample
+        spacing (its running mean)."""
+        h = self.accel
+        if len(h) < 2 or not (0.0 < t - h[-1][0] <= ACCEL_MAX_SPACING_S
+                              and 0.0 < h[-1][0] - h[-2][0] <= ACCEL_MAX_SPACING_S):
+            return
+        dt = t - h[-1][0]
+        self.acc_n += 1
+        w = max(1.0 / self.acc_n, dt / NOISE_AVERAGE_S)
+        sp = self.acc_spacing_s
+        self.acc_spacing_s = dt if self.acc_n == 1 else (1.0 - w) * sp + w * dt
+        floor = self._accel_noise_floor()
+        psd = []
+        for i, a in enumerate((a_x, a_y)):
+            d2 = a - 2.0 * h[-1][1 + i] + h[-2][1 + i]
+            sample = d2 * d2 / 6.0
+            r = self.acc_r[i]
+            if self.acc_n > 1:  # a jolt (a gust's step) is not noise: a sample counts at most 9 times the mean
+                sample = min(sample, 9.0 * max(r, floor))
+            self.acc_r[i] = sample if self.acc_n == 1 else (1.0 - w) * r + w * sample
+            psd.append(max(self.acc_r[i], floor) * self.acc_spacing_s)
+        self.input_psd = (psd[0], psd[1])
+
+    def _accel_noise_floor(self) -> float:
+        """The least white noise variance of an accelerometer sample (m^2/s^4): the config's, and
+        at least the 1 mg rounding's (``ACCEL_RESOLUTION_M_S2``)."""
+        return max(self.s.accel_noise_m_s2 ** 2, ACCEL_RESOLUTION_M_S2 ** 2 / 12.0)
+
+    def _input(self, t0: float, t1: float) -> tuple[float, float, float, float]:
+        """The prediction's input from ``t0`` to ``t1``, both axes, m/s, and its sampling error's
+        variance, m^2/s^2: the tilt acceleration's integral (``_integral``) and, once the vehicle
+        has shown an accelerometer, the accelerometer's: a sample is the mean over the interval
+        since the sample before it (an IMU's decimation: PX4's delta velocity, ArduPilot's low-pass
+        filtered samples), the newest held after it, 0 before the first's interval (there was none:
+        the disturbance state held what it would have told). A stretch ``d`` of a sample's interval
+        ``T_j`` is wrong by up to ``da d (T_j - d) / T_j``, ``da`` the change from the sample before
+        (the force may have changed anywhere inside; a whole interval is exact), taken as uniform,
+        variance a twelfth of its square; after the newest sample by up to ``da d``."""
+        ix, iy = self._integral(t0, t1)
+        h = self.accel
+        if not h or not t1 > t0:
+            return ix, iy, 0.0, 0.0
+        spacing = self.acc_spacing_s if self.acc_spacing_s == self.acc_spacing_s else self.s.nominal_frame_s
+        jx = jy = vx = vy = 0.0
+        n = len(h)
+        i = n - 1
+        while i > 0 and h[i - 1][0] > t0:  # h[i]: the first sample after t0 (or the newest)
+            i -= 1
+        if i > 0:
+            prev_t, prev = h[i - 1][0], (h[i - 1][1], h[i - 1][2])
+        else:
+            prev_t, prev = h[0][0] - spacing, (0.0, 0.0)  # the start of the first sample's interval
+        a = t0
+        for j in range(i, n):  # the samples whose interval meets [t0, t1], oldest first
+            k = h[j]
+            tk = k[0]
+            if tk > a:
+                b = min(tk, t1)
+                if b > prev_t:
+                    lo = max(a, prev_t)
+                    d, span = b - lo, tk - prev_t
+                    jx += k[1] * d
+                    jy += k[2] * d
+                    e = d * (span - d) / span
+                    vx += ((k[1] - prev[0]) * e) ** 2 / 12.0
+                    vy += ((k[2] - prev[1]) * e) ** 2 / 12.0
+                a = b
+                if a >= t1:
+                    break
+            prev_t, prev = tk, (k[1], k[2])
+        if a < t1:  # after the newest sample: held
+            d = t1 - a
+            new, old = h[-1], (h[-2] if len(h) > 1 else (0.0, 0.0, 0.0))
+            jx += new[1] * d
+            jy += new[2] * d
+            vx += ((new[1] - old[1]) * d) ** 2 / 12.0
+            vy += ((new[2] - old[2]) * d) ** 2 / 12.0
+        return ix + jx, iy + jy, vx, vy
 
     def _accel(self, t: float) -> tuple[float, float]:
         h = self.attitude
@@ -750,6 +930,9 @@ class VelocityKalman:
         self.last_time_s = time_s
         r_model = (s.model_variance(z_x, range_m), s.model_variance(z_y, range_m))
         r = []
+        if self.accel and axes[0].search:  # the accelerometer is the input from now on
+            for ax in axes:
+                ax.accelerometer_input()
         for ax, z, rm in zip(axes, (z_x, z_y), r_model, strict=True):
             if not linked:
                 ax.unlink(s)
@@ -775,12 +958,13 @@ class VelocityKalman:
                 ax.start(z, rr, g, s)
         else:
             t_m = max(t_m, h)  # a sample older than the horizon is fused at the horizon
-            ix, iy = self._integral(h, t_m)
-            for ax, a_int, z, rr in zip(axes, (ix, iy), (z_x, z_y), r, strict=True):
-                ax.predict(a_int, t_m - h, s)
+            ix, iy, jx, jy = self._input(h, t_m)
+            for ax, a_int, z, rr, q, j in zip(axes, (ix, iy), (z_x, z_y), r, self.input_psd, (jx, jy), strict=True):
+                ax.predict(a_int, t_m - h, s, search=ax.search, input_psd=q, input_var=j)
                 ax.fuse(z, rr, g, s)
         self.horizon_s = t_m
         t_out = max(time_s, self.attitude[-1][0])
-        ox, oy = self._integral(t_m, t_out)
-        (vx, var_x), (vy, var_y) = (ax.output(o, t_out - t_m, s) for ax, o in zip(axes, (ox, oy), strict=True))
+        ox, oy, jx, jy = self._input(t_m, t_out)
+        (vx, var_x), (vy, var_y) = (ax.output(o, t_out - t_m, s, q, j)
+                                    for ax, o, q, j in zip(axes, (ox, oy), self.input_psd, (jx, jy), strict=True))
         return vx, vy, var_x, var_y

@@ -21,6 +21,7 @@ from companion.profiles import (
     TIME_FIELDS,
     FlowColumns,
     Profile,
+    accel_m_s2,
     flow_scalar,
 )
 
@@ -70,7 +71,10 @@ class MessageRouter:
             gx, gy = msg.xgyro * scale, msg.ygyro * scale
             if mtype != "HIGHRES_IMU" and max(abs(msg.xgyro), abs(msg.ygyro)) >= INT16_CLIP:
                 gx = gy = math.nan  # the int16 mrad/s field clipped: the rate is unknown (saturated)
-            self.core.on_gyro(gyro_time_s(msg), gx, gy)
+            t = gyro_time_s(msg)
+            self.core.on_gyro(t, gx, gy)
+            fx, fy, _ = accel_m_s2(mtype, msg.xacc, msg.yacc, msg.zacc)
+            self.core.on_accel(t, fx, fy)
         elif mtype == "DISTANCE_SENSOR":
             if msg.orientation != DOWNWARD:
                 self._ignore("range not facing down")

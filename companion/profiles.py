@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from companion.errors import RecordingError
+from companion.importers.common import GRAVITY_M_S2
 from companion.recording import Recording
 
 
@@ -45,6 +46,28 @@ FLOW_MESSAGE = {
 GYRO_MESSAGES = {"RAW_IMU": 1e-3, "SCALED_IMU": 1e-3, "HIGHRES_IMU": 1.0}
 #: RAW_IMU / SCALED_IMU gyro fields (int16, mrad/s) at this magnitude have clipped: the rate is unknown
 INT16_CLIP = 32767
+#: the same messages' accelerometer fields (body FRD specific force) -> m/s^2: milli-g of standard
+#: gravity (ArduPilot's and PX4's RAW_IMU, SCALED_IMU; int16, clipping at ``INT16_CLIP`` like the
+#: gyro's), HIGHRES_IMU m/s^2 (float)
+ACCEL_M_S2 = {"RAW_IMU": GRAVITY_M_S2 * 1e-3, "SCALED_IMU": GRAVITY_M_S2 * 1e-3, "HIGHRES_IMU": 1.0}
+
+
+def accel_m_s2(name: str, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
+    """A gyro message's accelerometer fields (scalars or arrays) in m/s^2, body FRD; NaN on all
+    three where an int16 field has clipped (the specific force is unknown) or a value is not
+    finite. The one conversion of the live loop (``inbound.MessageRouter``) and of recordings
+    (``companion.signals``). Whether a vehicle has an accelerometer at all is the estimator's
+    rule (``estimator.VelocityKalman.on_accel``: the (0, 0, -1 g) placeholder)."""
+    k = ACCEL_M_S2[name]
+    fx, fy, fz = (np.asarray(v, dtype=float) for v in (x, y, z))
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.isfinite(fx) & np.isfinite(fy) & np.isfinite(fz))
+        if name != "HIGHRES_IMU":
+            bad = bad | (np.maximum(np.maximum(np.abs(fx), np.abs(fy)), np.abs(fz)) >= INT16_CLIP)
+    out = tuple(np.where(bad, np.nan, v * k) for v in (fx, fy, fz))
+    if out[0].ndim == 0:
+        return float(out[0]), float(out[1]), float(out[2])
+    return out[0], out[1], out[2]
 #: each message's own time field (CONVENTIONS.md), the one time-field rule of the live loop
 #: (``inbound``) and of recordings (``companion.signals``): (field, factor, scale), the time in s
 #: is ``value * factor * scale``. A gyro's time goes through whole microseconds (SCALED_IMU's

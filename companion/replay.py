@@ -486,7 +486,10 @@ def _kalman(rec: Recording, sysid: int, cfg: Config, profile: Profile, options: 
     else:
         cols = (att.record, att.time_s, att.roll, att.pitch, att.rollspeed, att.pitchspeed)
     kf = VelocityKalman(settings)
-    return kalman_columns(kf, usable, record, time_s, span, zx, zy, range_m, *cols)
+    gyro = gyro_as_received(rec, sysid)  # the accelerometer of the gyro messages, as the live router takes it
+    acc = gyro.accel_m_s2
+    accel = None if acc is None else (gyro.record, gyro.time_s, acc[:, 0], acc[:, 1])
+    return kalman_columns(kf, usable, record, time_s, span, zx, zy, range_m, *cols, accel=accel)
 
 
 def _cross_frame_checks(rec: Recording, sysid: int, cfg: Config, record: np.ndarray, codes: np.ndarray,

@@ -43,7 +43,6 @@ from functools import cached_property
 import numpy as np
 
 from companion.columnar import MessageTable, Recording, vehicle_sysid
-from companion.importers.common import GRAVITY_M_S2
 from companion.mavlink_ids import COMPANION_COMPONENT, DOWNWARD
 from companion.profiles import (
     FLOW_MESSAGE,
@@ -52,12 +51,10 @@ from companion.profiles import (
     TIME_FIELDS,
     FlowColumns,
     Profile,
+    accel_m_s2,
     flow_columns,
 )
 from companion.rotation import quaternions_to_euler
-
-#: accelerometer field unit -> m/s^2: milli-g (ArduPilot's and PX4's RAW_IMU, SCALED_IMU), HIGHRES_IMU m/s^2
-ACCEL_M_S2 = {"RAW_IMU": GRAVITY_M_S2 * 1e-3, "SCALED_IMU": GRAVITY_M_S2 * 1e-3, "HIGHRES_IMU": 1.0}
 
 
 def stable_order(keys: np.ndarray) -> np.ndarray:
@@ -155,8 +152,9 @@ class GyroSamples:
     messages (``names``). Arrays of shape (n,): ``record`` (int64), ``time_s`` (each message's
     own time field, s), ``x_rad_s``, ``y_rad_s``, ``z_rad_s`` (body FRD roll, pitch, yaw rate;
     NaN where an int16 field clipped: x and y both where either did, as the live loop has it, z
-    where it did itself). ``accel_m_s2``: (n, 3) body FRD specific force, or None when a message
-    has no accelerometer fields. Columns are computed on first use."""
+    where it did itself). ``accel_m_s2``: (n, 3) body FRD specific force (``profiles.accel_m_s2``:
+    NaN where an int16 field clipped), or None when a message has no accelerometer fields.
+    Columns are computed on first use."""
 
     def __init__(self, parts: Sequence[MessageTable]) -> None:
         self.parts = tuple(parts)
@@ -227,8 +225,8 @@ class GyroSamples:
         keys = ("xacc", "yacc", "zacc")
         if not self.parts or not all(k in p.fields for p in self.parts for k in keys):
             return None
-        return np.column_stack([self._column([np.asarray(p[k], dtype=float) * ACCEL_M_S2[p.name]
-                                              for p in self.parts]) for k in keys])
+        per_part = [accel_m_s2(p.name, p["xacc"], p["yacc"], p["zacc"]) for p in self.parts]
+        return np.column_stack([self._column([a[i] for a in per_part]) for i in range(3)])
 
 
 def gyro_as_received(rec: Recording, sysid: int) -> GyroSamples:

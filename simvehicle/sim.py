@@ -199,15 +199,23 @@ class Simulator:
         h = self.T / self.n_sub
         roll_u, pitch_u = self.u_active
         t0 = self.t_s
+        accel = self.cfg.imu.accelerometer
+        f_sum = [0.0, 0.0, 0.0]
         for j in range(self.n_sub):
             t = t0 + j * h
             fx, fy = self.force_at(t + 0.5 * h)
             a = self.altitude_fn(t + 0.5 * h)
+            x0, y0 = self.x, self.y
             self.x = axis_rk4(self.x, pitch_u, fx, a, AXIS_SIGN[0], h, p=self.params)
             self.y = axis_rk4(self.y, roll_u, fy, a, AXIS_SIGN[1], h, p=self.params)
+            if accel:  # the substep's mean acceleration, at its mean attitude
+                f = specific_force(0.5 * (y0[1] + self.y[1]), 0.5 * (x0[1] + self.x[1]), (self.x[2] - x0[2]) / h,
+                                   (self.y[2] - y0[2]) / h, 0.0, self.params.gravity_m_s2)
+                f_sum = [f_sum[0] + f[0], f_sum[1] + f[1], f_sum[2] + f[2]]
             self.t_s = t0 + (j + 1) * h
             if self.delay_s > 0.0:
                 self._record_hist()
+        self._frame_specific_force = (f_sum[0] / self.n_sub, f_sum[1] / self.n_sub, f_sum[2] / self.n_sub)
         self.frame += 1
         self.t_s = self.frame * self.T  # no drift from repeated addition
         self.u_active = (roll_cmd_rad, pitch_cmd_rad)
@@ -243,17 +251,23 @@ class Simulator:
         )
 
     def accelerometer(self, force_x_n: float, force_y_n: float, altitude_m: float) -> tuple[float, float, float]:
-        """The accelerometer's sample now (``imu.specific_force`` of the plant's acceleration, eq. 28
-        with the force and drag acting, through ``imu.accel_sample``); NaN when the config's IMU
-        has none. The plant holds its altitude (eq. 26-28 have no vertical motion): no vertical
-        acceleration."""
+        """The accelerometer's sample now, through ``imu.accel_sample``: the mean specific force
+        (``imu.specific_force`` of the plant's acceleration, eq. 28 with the force and drag acting)
+        over the frame just integrated, as an IMU's decimation reports it (PX4's delta velocity over
+        its interval, ArduPilot's low-pass filtered samples), each substep's mean acceleration
+        (its change of velocity over its length) at its mean attitude; the first frame, with none
+        before it, the specific force at that instant. NaN when the config's IMU has none. The
+        plant holds its altitude (eq. 26-28 have no vertical motion): no vertical acceleration."""
         imu = self.cfg.imu
         if not imu.accelerometer:
             return math.nan, math.nan, math.nan
-        u_pitch, u_roll = self.u_active[1], self.u_active[0]
-        a_x = axis_derivative(self.x, u_pitch, force_x_n, altitude_m, AXIS_SIGN[0], p=self.params)[2]
-        a_y = axis_derivative(self.y, u_roll, force_y_n, altitude_m, AXIS_SIGN[1], p=self.params)[2]
-        f = specific_force(self.y[1], self.x[1], a_x, a_y, 0.0, self.params.gravity_m_s2)
+        if self.frame > 0:
+            f = self._frame_specific_force
+        else:
+            u_pitch, u_roll = self.u_active[1], self.u_active[0]
+            a_x = axis_derivative(self.x, u_pitch, force_x_n, altitude_m, AXIS_SIGN[0], p=self.params)[2]
+            a_y = axis_derivative(self.y, u_roll, force_y_n, altitude_m, AXIS_SIGN[1], p=self.params)[2]
+            f = specific_force(self.y[1], self.x[1], a_x, a_y, 0.0, self.params.gravity_m_s2)
         return accel_sample(*f, self.accel_rng, bias_x_m_s2=self.accel_bias[0], bias_y_m_s2=self.accel_bias[1],
                             noise_density_m_s2_sqrt_hz=imu.accel_noise_density_m_s2_sqrt_hz, rate_hz=imu.rate_hz,
                             range_m_s2=imu.accel_range_m_s2)
