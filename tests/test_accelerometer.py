@@ -48,7 +48,8 @@ def test_a_steady_force_reads_force_over_mass_along_it(paper_cfg, fx_n, fy_n):
     of velocity over its length, which is (F - b v) / m at the frame's mean velocity (its change of
     position over its length). Pitched and rolled by constant commands, once the tilt has settled:
     (F - b v) cos(tilt) / m per axis at the frame's mean velocity and tilt (7e-9 m/s^2 apart as
-    measured: the tilt has settled to 2e-9 rad a frame; held to 1e-7), y with the plant's second-order coupling (below)."""
+    measured: the tilt has settled to 2e-9 rad a frame; held to 1e-7), y with the plant's
+    second-order coupling (below)."""
     b = 0.3
     cfg = with_effects(_quiet(paper_cfg), wind_force=WindForce(fx_n, fy_n, 0.0, 1e9), linear_drag=LinearDrag(b))
     m, g, T = cfg.airframe.mass_kg, cfg.airframe.gravity_m_s2, cfg.flow_sensor.frame_period_s
