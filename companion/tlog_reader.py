@@ -36,16 +36,20 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import importlib
+import importlib.util
+import marshal
+import os
 import re
 import sys
 import threading
-from collections.abc import Collection, Iterator, Mapping
+import zlib
+from collections.abc import Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion import native
 from companion.columnar import LazyColumns, MessageTable, Recording, is_gzip_path, read_recording_bytes
@@ -101,12 +105,11 @@ class MessageLayout:
     when the fast path cannot lay it out (decoded with pymavlink instead). ``fieldnames``:
     pymavlink's field order. ``char_fields``: fields of MAVLink type char[N].
     ``char_as_str``: pymavlink turns char[N] into ``str`` (cut at the first NUL, ASCII with
-    replacement) rather than ``bytes``.
+    replacement) rather than ``bytes``. ``cls``: the dialect's class (the dialect loaded then).
     """
 
     msgid: int
     name: str
-    cls: type
     crc_extra: int
     size: int
     dtype: np.dtype | None
@@ -114,12 +117,28 @@ class MessageLayout:
     char_fields: frozenset[str]
     char_as_str: bool
 
+    @property
+    def cls(self) -> type:
+        return _dialect().mavlink_map[self.msgid]
 
-def _payload_dtype(cls: type) -> tuple[np.dtype | None, frozenset[str]]:
-    """Structured dtype of ``cls``'s wire payload from its ``unpacker`` format and
-    ``ordered_fieldnames``; None if a code has no numpy equivalent or the sizes disagree."""
-    fmt: str = cls.unpacker.format  # type: ignore[attr-defined]
-    names: list[str] = list(cls.ordered_fieldnames)  # type: ignore[attr-defined]
+
+#: the dialect the reader decodes with (its classes give each message's wire layout)
+DIALECT = "pymavlink.dialects.v20.ardupilotmega"
+#: the version of the wire-layout table's cache file (``_wire_table``)
+_WIRE_TABLE_VERSION = 1
+
+
+@functools.cache
+def _dialect() -> Any:
+    """The ardupilotmega dialect module, loaded when first needed: a file whose layouts are in
+    the cache (``_wire_table``) is read without it (about 25 ms of every command's start-up)."""
+    return importlib.import_module(DIALECT)
+
+
+def _payload_dtype(fmt: str, names: Sequence[str], size: int) -> tuple[np.dtype | None, frozenset[str]]:
+    """Structured dtype of a wire payload from its unpacker's ``fmt`` (struct format) and the
+    ``names`` in wire order (``ordered_fieldnames``); None if a code has no numpy equivalent or
+    the sizes disagree with ``size`` (the unpacker's)."""
     if not fmt.startswith("<"):
         return None, frozenset()
     tokens = re.findall(r"(\d*)([a-zA-Z?])", fmt[1:])
@@ -136,8 +155,8 @@ def _payload_dtype(cls: type) -> tuple[np.dtype | None, frozenset[str]]:
             formats.append(_NUMPY_CODES[code] if count == 1 else (_NUMPY_CODES[code], (count,)))
         else:
             return None, frozenset()
-    dtype = np.dtype({"names": names, "formats": formats})
-    if dtype.itemsize != cls.unpacker.size:  # type: ignore[attr-defined]
+    dtype = np.dtype({"names": list(names), "formats": formats})
+    if dtype.itemsize != size:
         return None, frozenset()
     return dtype, frozenset(chars)
 
@@ -167,45 +186,96 @@ def _char_as_str(cls: type, dtype: np.dtype, char_fields: frozenset[str]) -> boo
     return None
 
 
-def _make_layout(msgid: int, cls: type) -> MessageLayout:
-    dtype, chars = _payload_dtype(cls)
-    as_str = True
+def _wire_entry(cls: type) -> tuple[Any, ...]:
+    """What the reader takes from one dialect class: (name, crc_extra, size, unpacker format,
+    ordered_fieldnames, fieldnames, fast, char_as_str), ``fast`` False when the numpy layout
+    cannot be made (a code without a numpy equivalent, or pymavlink's char handling unclear)."""
+    fmt, size = cls.unpacker.format, int(cls.unpacker.size)  # type: ignore[attr-defined]
+    ordered = tuple(cls.ordered_fieldnames)  # type: ignore[attr-defined]
+    dtype, chars = _payload_dtype(fmt, ordered, size)
+    as_str: bool | None = True
     if dtype is not None and chars:
-        probed = _char_as_str(cls, dtype, chars)
-        if probed is None:
-            dtype = None
-        else:
-            as_str = probed
-    return MessageLayout(
-        msgid=msgid, name=cls.msgname, cls=cls,  # type: ignore[attr-defined]
-        crc_extra=int(cls.crc_extra), size=int(cls.unpacker.size),  # type: ignore[attr-defined]
-        dtype=dtype, fieldnames=tuple(cls.fieldnames),  # type: ignore[attr-defined]
-        char_fields=chars, char_as_str=as_str)
+        as_str = _char_as_str(cls, dtype, chars)
+    return (cls.msgname, int(cls.crc_extra), size, fmt, ordered, tuple(cls.fieldnames),  # type: ignore[attr-defined]
+            dtype is not None and as_str is not None, bool(as_str))
+
+
+def _dialect_table() -> dict[int, tuple[Any, ...]]:
+    """``_wire_entry`` of every message the dialect defines, by id (loads the dialect)."""
+    return {int(mid): _wire_entry(cls) for mid, cls in _dialect().mavlink_map.items()}
+
+
+def _wire_table_file() -> Path | None:
+    """The cache file of the wire-layout table for the installed dialect: named by the dialect
+    source's size and modification time and the table's version; None if it cannot be found."""
+    try:
+        spec = importlib.util.find_spec(DIALECT)  # its parent packages only, not the dialect
+        origin = spec.origin if spec is not None else None
+        st = os.stat(origin) if origin else None
+    except (ImportError, OSError, ValueError):
+        return None
+    if st is None:
+        return None
+    key = f"{zlib.crc32(str(origin).encode()):08x}_{st.st_size:x}_{st.st_mtime_ns:x}_v{_WIRE_TABLE_VERSION}"
+    return native.cache_dir() / f"mavlink_layouts_{key}.marshal"
+
+
+@functools.cache
+def _wire_table() -> dict[int, tuple[Any, ...]]:
+    """``_dialect_table()``, kept in a cache file (``_wire_table_file``, beside the compiled
+    kernels) after it is first made: reading it (a few ms) spares loading the dialect. A file
+    that cannot be read or written is no error: the table is made from the dialect."""
+    path = _wire_table_file()
+    if path is not None:
+        try:
+            table = marshal.loads(path.read_bytes())
+            if isinstance(table, dict) and table:
+                return table
+        except (OSError, ValueError, EOFError, TypeError):
+            pass
+    table = _dialect_table()
+    if path is not None:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+            tmp.write_bytes(marshal.dumps(table))
+            os.replace(tmp, path)
+        except OSError:
+            pass
+    return table
+
+
+def _make_layout(msgid: int, entry: tuple[Any, ...]) -> MessageLayout:
+    name, crc_extra, size, fmt, ordered, fieldnames, fast, as_str = entry
+    dtype, chars = _payload_dtype(fmt, ordered, size)
+    return MessageLayout(msgid=msgid, name=name, crc_extra=crc_extra, size=size, dtype=dtype if fast else None,
+                         fieldnames=tuple(fieldnames), char_fields=chars, char_as_str=as_str if fast else True)
 
 
 @functools.cache
 def layout_of(msgid: int) -> MessageLayout | None:
     """Decoding layout of message ``msgid`` (None if the ardupilotmega dialect does not
     define it), built on first use."""
-    cls = mavlink2.mavlink_map.get(msgid)
-    return None if cls is None else _make_layout(msgid, cls)
+    entry = _wire_table().get(msgid)
+    return None if entry is None else _make_layout(msgid, entry)
 
 
 def layouts() -> dict[int, MessageLayout]:
     """Decoding layout of every message the dialect defines, by message id."""
-    return {mid: lay for mid in mavlink2.mavlink_map if (lay := layout_of(int(mid))) is not None}
+    return {mid: lay for mid in _wire_table() if (lay := layout_of(int(mid))) is not None}
 
 
 @functools.cache
 def _crc_extra_lookup() -> tuple[np.ndarray, np.ndarray]:
     """(known, crc_extra): arrays indexed by message id (size max id + 2; the last slot is
     where out-of-range ids are clipped to, and is unknown)."""
-    size = max(mavlink2.mavlink_map) + 2
+    table = _wire_table()
+    size = max(table) + 2
     known = np.zeros(size, dtype=bool)
     extra = np.zeros(size, dtype=np.uint8)
-    for mid, cls in mavlink2.mavlink_map.items():
+    for mid, entry in table.items():
         known[mid] = True
-        extra[mid] = cls.crc_extra
+        extra[mid] = entry[1]
     return known, extra
 
 
@@ -670,7 +740,7 @@ def _decode_pymavlink(buf: np.ndarray, lay: MessageLayout, s: np.ndarray,
                       end: np.ndarray) -> dict[str, np.ndarray]:
     """Columns of ``lay``'s packets ``[s, end)`` decoded one by one with pymavlink, in the
     dtypes the message definition gives (``fieldtypes``); char[N] as object arrays."""
-    mav = mavlink2.MAVLink(None)
+    mav = _dialect().MAVLink(None)
     values: dict[str, list[Any]] = {name: [] for name in lay.fieldnames}
     for a, e in zip(s.tolist(), end.tolist(), strict=True):
         msg = mav.decode(bytearray(buf[a:e].tobytes()))
@@ -839,9 +909,8 @@ def _scan_range(lib: Any, buf: np.ndarray, n_bytes: int, pos: int, stop: int, si
     out: list[tuple[list[np.ndarray], int, int]] = []
     while pos < stop:
         cap = (sized_for - pos) // 16 + 64
-        arrays = [np.empty(cap, np.int64), np.empty(cap, np.uint8), np.empty(cap, np.int16), np.empty(cap, np.int16),
-                  np.empty(cap, np.int32), np.empty(cap, np.uint8), np.empty(cap, np.uint8), np.empty(cap, np.uint64),
-                  np.empty(cap, np.int64)]
+        arrays: list[np.ndarray] = [np.empty(cap, dt) for dt in (np.int64, np.uint8, np.int16, np.int16, np.int32,
+                                                                 np.uint8, np.uint8, np.uint64, np.int64)]
         done_good = done_other = 0
         while pos < stop and done_good < cap and done_other < cap:
             step = min(pos + _SCAN_CHUNK, stop)
@@ -1002,14 +1071,14 @@ def _tables_numpy(buf: np.ndarray, pk: _Packets, t_s: np.ndarray, progress: _Pro
                   ) -> dict[str, MessageTable]:
     """``_tables``: the types grouped by a stable sort, each decoded at once (``_decode_fast``)."""
     # group by message id (a dense 16-bit code, so the stable sort is a radix sort)
-    ids = np.array(sorted(mavlink2.mavlink_map), dtype=np.int64)
+    ids = np.array(sorted(_wire_table()), dtype=np.int64)
     code_tab = np.full(int(ids[-1]) + 2, len(ids), dtype=np.uint16)
     code_tab[ids] = np.arange(len(ids), dtype=np.uint16)
     code = code_tab[np.minimum(pk.msgid, len(code_tab) - 1)]
     order = np.argsort(code, kind="stable")
     groups = np.split(order, np.flatnonzero(np.diff(code[order])) + 1)
     del order, code
-    if int(pk.msgid[groups[-1][0]]) not in mavlink2.mavlink_map:  # unknown ids, one by one
+    if int(pk.msgid[groups[-1][0]]) not in _wire_table():  # unknown ids, one by one
         unknown = groups.pop()
         for mid in np.unique(pk.msgid[unknown]).tolist():
             groups.append(unknown[pk.msgid[unknown] == mid])

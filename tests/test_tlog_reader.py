@@ -663,3 +663,26 @@ def test_flight_a_whole_file_equals_pymavlink(flight_a, flight_a_plain, monkeypa
     msgs = pymavlink_messages(flight_a_plain, monkeypatch)
     assert Counter(m.get_type() for m in msgs) == {n: len(t) for n, t in flight_a.tables.items()}
     assert_matches_pymavlink(flight_a, msgs)
+
+
+def test_the_wire_layout_cache_is_the_dialects_table(tmp_path, monkeypatch):
+    """The reader's wire layouts come from a cache file (so the dialect, 25 ms of start-up, is
+    not loaded): made from the dialect when missing or unreadable, and equal to it."""
+    from companion import native
+
+    monkeypatch.setenv("FLOWHOLD_CACHE_DIR", str(tmp_path))
+    tr._wire_table.cache_clear()
+    try:
+        fresh = tr._dialect_table()
+        assert tr._wire_table() == fresh  # made and written
+        path = tr._wire_table_file()
+        assert path is not None and path.parent == native.cache_dir() and path.is_file()
+        tr._wire_table.cache_clear()
+        assert tr._wire_table() == fresh  # read back
+        path.write_bytes(b"\x00garbage")
+        tr._wire_table.cache_clear()
+        assert tr._wire_table() == fresh  # unreadable: made again
+        assert len(fresh) == len(mavlink2.mavlink_map) and fresh[24][0] == "GPS_RAW_INT"
+        assert all(tr.layout_of(mid).cls is mavlink2.mavlink_map[mid] for mid in (0, 100, 106))
+    finally:
+        tr._wire_table.cache_clear()
