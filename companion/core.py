@@ -79,7 +79,7 @@ from typing import Any
 
 import numpy as np
 
-from companion import rules
+from companion import native, rules
 from companion.config import Config
 from companion.controller import PiController, PiState, _axis
 from companion.estimator import KalmanSettings, VelocityKalman, VelocitySensor, scene_rate, velocity_from_flow
@@ -324,7 +324,7 @@ def kalman_columns(kf: VelocityKalman, usable: np.ndarray, record: np.ndarray, t
         calls = [tagged[k] for k in order.tolist()]
     else:
         calls = [(kf.on_attitude, r) for r in rows]
-    j_end = np.searchsorted(in_rec, record, side="left")  # rows received before each frame
+    j_end = native.searchsorted(in_rec, record, side="left")  # rows received before each frame
     cols = [c.tolist() for c in (time_s, span_s, z_x, z_y, range_m)]
     j = 0
     update = kf.update
@@ -552,7 +552,7 @@ def repeat_mask(time_s: np.ndarray, payload: np.ndarray, window_s: float | np.nd
 
 def latest_before(event_record: np.ndarray, query_record: np.ndarray) -> np.ndarray:
     """Index of the latest event received before each query (both sorted by ``record``); -1 if none."""
-    return np.searchsorted(event_record, query_record, side="left") - 1
+    return native.searchsorted(event_record, query_record, side="left") - 1  # np.searchsorted, compiled
 
 
 def gyro_history_columns(gyro_record: np.ndarray, gyro_time_s: np.ndarray, flow_record: np.ndarray
@@ -680,8 +680,8 @@ def pi_axis_columns(integral_m: float, active: np.ndarray, reset: np.ndarray, er
     # for each event: the next reset event and the next active event at or after it (m: none)
     ar = np.arange(m + 1)
     r_idx, a_idx = np.flatnonzero(is_reset), np.flatnonzero(~is_reset)
-    next_reset = np.append(r_idx, m)[np.searchsorted(r_idx, ar)]
-    next_active = np.append(a_idx, m)[np.searchsorted(a_idx, ar)]
+    next_reset = np.append(r_idx, m)[native.searchsorted(r_idx, ar)]
+    next_active = np.append(a_idx, m)[native.searchsorted(a_idx, ar)]
     eff_ev = np.zeros(m)
     i = integral_m
     k = 0

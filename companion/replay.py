@@ -54,6 +54,7 @@ from typing import Any
 
 import numpy as np
 
+from companion import native
 from companion.config import Config, load_config
 from companion.core import (
     CAUSE_CODES,
@@ -210,7 +211,7 @@ def _match_last(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
         return np.full(len(query), -1, dtype=np.int64)
     order = _stable_order(keys)
     sk = keys[order]
-    pos = np.searchsorted(sk, query, side="right") - 1
+    pos = native.searchsorted(sk, query, side="right") - 1
     ok = (pos >= 0) & (sk[np.maximum(pos, 0)] == query)
     return np.where(ok, order[np.maximum(pos, 0)], -1)
 
@@ -526,8 +527,8 @@ def _truth(rec: Recording, sysid: int, time_s: np.ndarray) -> dict[str, np.ndarr
     vn = np.asarray(lp["vx"], float)[order]
     ve = np.asarray(lp["vy"], float)[order]
     # valid between two samples at most TRUTH_MAX_GAP_S apart (or on a sample)
-    hi = np.clip(np.searchsorted(t, time_s, side="left"), 0, len(t) - 1)
-    lo = np.clip(np.searchsorted(t, time_s, side="right") - 1, 0, len(t) - 1)
+    hi = np.clip(native.searchsorted(t, time_s, side="left"), 0, len(t) - 1)
+    lo = np.clip(native.searchsorted(t, time_s, side="right") - 1, 0, len(t) - 1)
     with np.errstate(invalid="ignore"):
         ok = (time_s >= t[0]) & (time_s <= t[-1]) & (t[hi] - t[lo] <= TRUTH_MAX_GAP_S)
     vn_f = np.where(ok, np.interp(time_s, t, vn), np.nan)

@@ -300,3 +300,28 @@ def test_threads_follow_the_cpus_allowed(monkeypatch):
     assert native.threads() == 1
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(64)))
     assert native.threads() == native.MAX_THREADS
+
+
+@pytest.mark.parametrize("dtype", [np.int64, np.float64])
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_searchsorted_equals_numpy(dtype, side):
+    """The compiled search on sorted arrays: sorted queries (the galloping merge), unsorted ones,
+    duplicates, values outside the array, floats with NaN and infinities (numpy's order: NaN
+    last), empty arrays."""
+    rng = np.random.default_rng(9)
+    for n, m in ((0, 2000), (1, 2000), (5000, 3000), (3000, 20000), (20000, 1500)):
+        a = np.sort(rng.integers(-50, 50, n) if dtype is np.int64 else
+                    np.concatenate([rng.normal(size=n - n // 10), rng.integers(-3, 3, n // 10).astype(float)]))
+        if dtype is np.float64 and n > 10:
+            a = np.sort(np.concatenate([a[:-5], [np.nan, np.nan, np.inf, -np.inf, -0.0]]))
+        a = a.astype(dtype)
+        v = (rng.integers(-60, 60, m) if dtype is np.int64 else rng.normal(size=m) * 1.2).astype(dtype)
+        if dtype is np.float64:
+            v[::97] = np.nan
+            v[::89] = a[0] if n else 0.0
+        for q in (np.sort(v), v, np.sort(v)[::-1], np.repeat(np.sort(v)[:m // 3], 3)):
+            got = native.searchsorted(a, q, side)
+            assert got.dtype == np.int64
+            np.testing.assert_array_equal(got, np.searchsorted(a, q, side=side))
+    assert native.searchsorted(np.arange(3), np.array([1]), side).tolist() == np.searchsorted(
+        np.arange(3), [1], side=side).tolist()  # short: numpy's own call

@@ -7,7 +7,8 @@
  *                    _check_crc), candidate by candidate;
  *   fh_tables, fh_fields <- companion/tlog_reader.py, _tables_numpy (_decode_fast), the first
  *                    the tables' rows, the second the fields asked for;
- *   fh_csv_rows   <- companion/csv_format.py, format_rows (itself Python's % formatting).
+ *   fh_csv_rows   <- companion/csv_format.py, format_rows (itself Python's % formatting);
+ *   fh_searchsorted_* <- numpy.searchsorted on a sorted array (companion/native.py, searchsorted).
  * The tests hold each equal to the one it copies (tests/test_native.py). Loaded through ctypes by
  * companion/native.py, which compiles this file once with the system's C compiler.
  *
@@ -31,7 +32,7 @@
 #define CRC_LEN 2
 
 /* ABI version: companion/native.py refuses a library whose fh_version differs */
-int32_t fh_version(void) { return 8; }
+int32_t fh_version(void) { return 9; }
 
 /* ------------------------------------------------------------------------------------------- */
 /* CRC-16/MCRF4XX (X.25). crc_tab[k][b]: the CRC contribution of byte b followed by k zero bytes
@@ -304,6 +305,46 @@ int32_t fh_fields(const uint8_t *buf, int64_t n, const int64_t *record, const in
     }
     return 0;
 }
+
+/* ------------------------------------------------------------------------------------------- */
+/* Sorted search */
+
+/* np.searchsorted(a, v, side) for a sorted a (n values) and any queries v (m values): out[j] is
+ * the number of a's values before v[j] (left: a[i] < v[j]; right: not v[j] < a[i]), with numpy's
+ * order for floats (NaN after every number). Queries in non-decreasing order, the common case
+ * (record numbers, times), are found by galloping on from the previous answer: O(m log gap)
+ * rather than O(m log n); a query below the previous one starts again from the whole array. */
+#define LT_F64(x, y) ((x) < (y) || ((y) != (y) && (x) == (x)))
+#define LT_I64(x, y) ((x) < (y))
+#define SEARCHSORTED(NAME, T, LT)                                                                                  \
+    void NAME(const T *a, int64_t n, const T *v, int64_t m, int32_t right, int64_t *out) {                     \
+        int64_t lo = 0;                                                                                          \
+        for (int64_t j = 0; j < m; j++) {                                                                        \
+            T key = v[j];                                                                                        \
+            if (j == 0 || LT(key, v[j - 1])) lo = 0; /* else: the answer is at or after the previous */       \
+            /* before(i): a[i] comes before key (left: a[i] < key; right: !(key < a[i])) */                     \
+            int64_t hi, step = 1;                                                                                \
+            if (lo < n && (right ? !LT(key, a[lo]) : LT(a[lo], key))) {                                          \
+                int64_t last = lo; /* gallop: a[last] is before key */                                           \
+                hi = lo + 1;                                                                                     \
+                while (hi < n && (right ? !LT(key, a[hi]) : LT(a[hi], key))) {                                   \
+                    last = hi;                                                                                   \
+                    step *= 2;                                                                                   \
+                    hi = last + step;                                                                            \
+                }                                                                                                \
+                if (hi > n) hi = n;                                                                              \
+                lo = last + 1; /* the answer is in [lo, hi] */                                                   \
+                while (lo < hi) {                                                                                \
+                    int64_t mid = lo + (hi - lo) / 2;                                                            \
+                    if (right ? !LT(key, a[mid]) : LT(a[mid], key)) lo = mid + 1;                                \
+                    else hi = mid;                                                                               \
+                }                                                                                                \
+            }                                                                                                    \
+            out[j] = lo;                                                                                         \
+        }                                                                                                        \
+    }
+SEARCHSORTED(fh_searchsorted_f64, double, LT_F64)
+SEARCHSORTED(fh_searchsorted_i64, int64_t, LT_I64)
 
 /* ------------------------------------------------------------------------------------------- */
 /* CSV rows */
