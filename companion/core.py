@@ -943,9 +943,23 @@ def _sliding_extreme(x: np.ndarray, m: int, op: np.ufunc, neutral: float) -> np.
     padded = np.full(blocks * m, neutral)
     padded[:n] = x
     grid = padded.reshape(blocks, m)
-    prefix = op.accumulate(grid, axis=1).reshape(-1)
-    suffix = op.accumulate(grid[:, ::-1], axis=1)[:, ::-1].reshape(-1)
-    return op(suffix[:n - m + 1], prefix[m - 1:n])
+    if m > 100:
+        prefix = op.accumulate(grid, axis=1).reshape(-1)
+        suffix = op.accumulate(grid[:, ::-1], axis=1)[:, ::-1].reshape(-1)
+        return op(suffix[:n - m + 1], prefix[m - 1:n])
+    # the running extremes within each block, a column at a time (the operations of
+    # op.accumulate along the rows, in its order: op(so far, next), so the same bits; m calls of
+    # `blocks` values each rather than `blocks` calls of m, 1.3-7x faster for the windows of 2-100
+    # frames the frozen-sensor screen uses; slower beyond)
+    prefix = np.empty_like(grid)
+    suffix = np.empty_like(grid)
+    prefix[:, 0] = grid[:, 0]
+    for j in range(1, m):
+        op(prefix[:, j - 1], grid[:, j], out=prefix[:, j])
+    suffix[:, m - 1] = grid[:, m - 1]
+    for j in range(m - 2, -1, -1):
+        op(suffix[:, j + 1], grid[:, j], out=suffix[:, j])
+    return op(suffix.reshape(-1)[:n - m + 1], prefix.reshape(-1)[m - 1:n])
 
 
 def _trailing_span_direct(x: np.ndarray, m: int) -> np.ndarray:

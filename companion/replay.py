@@ -507,9 +507,13 @@ def _cross_frame_checks(rec: Recording, sysid: int, cfg: Config, record: np.ndar
     else:
         ar_x = ar_y = np.full(len(record), np.nan)
     usable = np.flatnonzero(codes == 0)
+    every = len(usable) == len(codes)  # the usual flight: the columns as they are, no copies
+
+    def rows(c: np.ndarray) -> np.ndarray:
+        return np.asarray(c, float) if every else np.asarray(c, float)[usable]
+
     vetoes = plausibility_columns(PlausibilityParams.from_config(cfg),
-                                  *(np.asarray(c, float)[usable] for c in (time_s, scene_x, scene_y, gx, gy, vx, vy,
-                                                                           range_m, ar_x, ar_y)))
+                                  *(rows(c) for c in (time_s, scene_x, scene_y, gx, gy, vx, vy, range_m, ar_x, ar_y)))
     out = codes.copy()
     for k, cause in vetoes:
         out[usable[k]] = CAUSE_CODES.index(cause)

@@ -9,7 +9,7 @@ from companion.core import _trailing_span, _trailing_span_direct
 from companion.info import _median
 
 
-@pytest.mark.parametrize("m", [1, 2, 3, 7, 25, 60])
+@pytest.mark.parametrize("m", [1, 2, 3, 7, 25, 60, 101, 150])
 @pytest.mark.parametrize("n", [0, 1, 2, 24, 25, 26, 49, 50, 51, 1000, 4099])
 def test_trailing_span_equals_the_window_view(n, m):
     """The O(n) sliding extremes equal the window view's max - min, NaN and infinities included
