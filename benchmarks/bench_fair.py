@@ -36,6 +36,7 @@ import json
 import os
 import resource
 import shutil
+import statistics
 import subprocess
 import sys
 import tarfile
@@ -203,59 +204,74 @@ def _children_cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def command(args: list[str], repeat: int = 2, timeout_s: float = 3600.0, env: dict[str, str] | None = None
-            ) -> dict[str, Any]:
-    """Wall time of ``python -m companion ARGS`` as a user runs it (best of ``repeat``), the CPU
-    time (user + system) of the best run, and the exit code (a failure is kept with its last line
-    of stderr). ``env``: extra environment for the command."""
+def one_cpu() -> set[int]:
+    """The first CPU this process may run on, as a set (for ``command``'s ``cpus``)."""
+    return {min(os.sched_getaffinity(0))}
+
+
+def command(args: list[str], repeat: int = 2, timeout_s: float = 3600.0, env: dict[str, str] | None = None,
+            cpus: set[int] | None = None) -> dict[str, Any]:
+    """Wall time of ``python -m companion ARGS`` as a user runs it (best of ``repeat``; also the
+    median), the CPU time (user + system) of the best run, and the exit code (a failure is kept
+    with its last line of stderr). ``env``: extra environment for the command; ``cpus``: the CPUs
+    it may run on (``taskset``; default: this process's)."""
     la = load_avg()
-    walls, cpus = [], []
+    walls, cpus_s = [], []
+    pin = None if cpus is None else (lambda: os.sched_setaffinity(0, cpus))
     for _ in range(repeat):
         t = time.perf_counter()
         c = _children_cpu_s()
         out = subprocess.run([sys.executable, "-m", "companion", *args], capture_output=True, text=True, cwd=ROOT,
-                             timeout=timeout_s, env=_env(env))
+                             timeout=timeout_s, env=_env(env), preexec_fn=pin)
         walls.append(time.perf_counter() - t)
-        cpus.append(_children_cpu_s() - c)
+        cpus_s.append(_children_cpu_s() - c)
         if out.returncode != 0:
             return {"wall_s": None, "exit_code": out.returncode,
                     "error": (out.stderr.strip().splitlines() or ["?"])[-1][:200], "load_before": la,
                     "load_after": load_avg()}
     best = min(range(len(walls)), key=walls.__getitem__)
-    return {"wall_s": walls[best], "cpu_s": cpus[best], "walls_s": walls, "cpus_s": cpus, "exit_code": 0,
+    return {"wall_s": walls[best], "cpu_s": cpus_s[best], "median_wall_s": statistics.median(walls),
+            "walls_s": walls, "cpus_s": cpus_s, "exit_code": 0, "cpus": sorted(cpus) if cpus else None,
             "load_before": la, "load_after": load_avg()}
 
 
 _PHASES = """
-import json, sys, time
+import json, os, resource, sys, time
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the replay and info commands load numpy (companion.cli)
 t0 = time.perf_counter()
 import numpy
 t1 = time.perf_counter()
+from companion import native
 from companion.config import load_config
+from companion.csv_format import iter_rows
 from companion.info import format_summary, summarise
 from companion.profiles import Profile, detect_profile
 from companion.recording import load_recording
-from companion.replay import replay, write_csv, write_parquet
-import companion.tlog_reader
+from companion.replay import REPLAY_FIELDS, _csv_formats, replay, write_csv, write_parquet
 t2 = time.perf_counter()
 cfg = load_config()
-rec = load_recording(sys.argv[1])
+rec = load_recording(sys.argv[1], fields=REPLAY_FIELDS)  # as replay's run_cli reads it
 t3 = time.perf_counter()
+rss_read = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 profile = Profile(detect_profile(rec)[0])
 res = replay(rec, cfg, profile)
 t4 = time.perf_counter()
 write_csv(res, sys.argv[2])
 t5 = time.perf_counter()
+rss_csv = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+names, fmts = _csv_formats(res)
+cols = [res.columns[c] for c in names]
+t5a = time.perf_counter()
+with open(sys.argv[2], "wb") as fh:  # the same text, formatted and written by this thread alone
+    fh.write((",".join(names) + "\\n").encode())
+    for part in iter_rows(cols, fmts, 16_384, threads=1):
+        fh.write(part)
+t5b = time.perf_counter()
 write_parquet(res, sys.argv[3])
 t6 = time.perf_counter()
 text = format_summary(summarise(rec))
 t7 = time.perf_counter()
-import os
-from companion import native
 from companion.csv_format import format_rows, format_rows_reference
-from companion.replay import _csv_formats
-names, fmts = _csv_formats(res)
-cols = [res.columns[c] for c in names]
 t8 = time.perf_counter()
 fast = format_rows(cols, fmts)
 t9 = time.perf_counter()
@@ -267,10 +283,11 @@ ref = format_rows_reference(cols, fmts)
 t11 = time.perf_counter()
 assert fast == ref == vectorised
 print(json.dumps({"numpy_import_s": t1 - t0, "other_imports_s": t2 - t1, "read_s": t3 - t2, "replay_s": t4 - t3,
-                  "csv_s": t5 - t4, "parquet_s": t6 - t5, "info_summary_s": t7 - t6, "frames": len(res),
-                  "csv_values": len(res) * len(names), "csv_bytes": len(ref), "format_native_s": t9 - t8,
-                  "format_numpy_s": t10 - t9, "format_python_s": t11 - t10,
-                  "native": native.kernels() is not None}))
+                  "csv_s": t5 - t4, "csv_one_thread_s": t5b - t5a, "parquet_s": t6 - t5b, "info_summary_s": t7 - t6,
+                  "frames": len(res), "csv_values": len(res) * len(names), "csv_bytes": len(ref),
+                  "format_native_s": t9 - t8, "format_numpy_s": t10 - t9, "format_python_s": t11 - t10,
+                  "native": native.kernels() is not None, "threads": native.threads(),
+                  "max_rss_after_read_mb": rss_read, "max_rss_after_csv_mb": rss_csv}))
 """
 
 
@@ -366,6 +383,9 @@ def measure_recording(rec: Recording, out_dir: Path, repeat: int = 2, paths: boo
         res["replay_parquet"] = command(["replay", str(rec.path), "--parquet", str(parquet)], repeat)
         res["info"] = command(["info", str(rec.path)], repeat)
         if paths:
+            one = one_cpu()
+            res["replay_csv_one_core"] = command(["replay", str(rec.path), "--csv", str(csv)], repeat, cpus=one)
+            res["info_one_core"] = command(["info", str(rec.path)], repeat, cpus=one)
             csv_np = out_dir / f"{rec.path.stem}.numpy.csv"
             res["replay_csv_numpy"] = command(["replay", str(rec.path), "--csv", str(csv_np)], repeat, env=NUMPY_PATH)
             res["replay_csv_numpy"]["same_bytes"] = csv.read_bytes() == csv_np.read_bytes()
@@ -383,6 +403,10 @@ def measure_recording(rec: Recording, out_dir: Path, repeat: int = 2, paths: boo
     base = res["baseline"]["loop_s"]
     res["ratios"] = {k: (base / v["wall_s"] if v.get("wall_s") else None)
                      for k, v in res.items() if isinstance(v, dict) and "wall_s" in v}
+    # medians: pymavlink's median loop against each command's median run
+    base_median = statistics.median(res["baseline"]["loops_s"])
+    res["ratios_median"] = {k: base_median / v["median_wall_s"] for k, v in res.items()
+                            if isinstance(v, dict) and v.get("median_wall_s")}
     res["ratios"]["read_warm"] = base / res["read"]["warm_s"]
     res["ratios"]["read_cold"] = base / res["read"]["cold_s"]
     if "read_numpy" in res:

@@ -178,7 +178,8 @@ def section_reader(t: Table, quick: bool, workdir: Path) -> None:
           f"one build {kernels['build_s']:.2f} s" if kernels["build_s"] is not None else "build failed")
     for rec in bench_fair.recordings(workdir, quick):
         is_long = rec.commands and rec.label.startswith("generated")
-        r = bench_fair.measure_recording(rec, workdir / "outputs", repeat=1 if quick else 2, paths=is_long)
+        r = bench_fair.measure_recording(rec, workdir / "outputs", repeat=1 if quick else 3 if is_long else 2,
+                                         paths=is_long)
         results.append(r)
         b, rd, q = r["baseline"], r["read"], r["ratios"]
         base = f"{b['reader']} {b['loop_s']:.2f} s ({b['messages']:,} msgs"
@@ -192,6 +193,8 @@ def section_reader(t: Table, quick: bool, workdir: Path) -> None:
                   f"{rn['warm_s']:.3f} s warm, {rn['cold_s']:.3f} s first", _x(q["read_numpy_warm"]))
         for key, what in (("replay_csv", "replay --csv, whole command"),
                           ("replay_parquet", "replay --parquet, whole command"), ("info", "info, whole command"),
+                          ("replay_csv_one_core", "replay --csv, whole command on one core (taskset)"),
+                          ("info_one_core", "info, whole command on one core (taskset)"),
                           ("replay_csv_numpy", "replay --csv, numpy path (FLOWHOLD_NATIVE=0)"),
                           ("info_numpy", "info, numpy path (FLOWHOLD_NATIVE=0)"),
                           ("replay_csv_first_build", "replay --csv, first run (kernels built)")):
@@ -202,6 +205,8 @@ def section_reader(t: Table, quick: bool, workdir: Path) -> None:
                 result = f"{c['wall_s']:.2f} s" if c.get("wall_s") else f"failed: {c.get('error')}"
                 if c.get("cpu_s"):
                     result += f" (CPU {c['cpu_s']:.2f} s)"
+                if c.get("wall_s") and len(c.get("walls_s", [])) >= 3:
+                    result += f", median of {len(c['walls_s'])} {c['median_wall_s']:.2f} s"
                 t.add("reader", f"{rec.label}: {what}", result, _x(q.get(key)), target)
     t.numbers["recordings"] = results
     long = next((r for r in bench_fair.recordings(workdir, quick) if r.commands and "generated" in r.label), None)
