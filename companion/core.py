@@ -494,7 +494,7 @@ def frame_repeat_window(integration_s: Any, body_x_rad_s: Any, body_y_rad_s: Any
     (simulated or converted) source, where a still sensor really repeats."""
     window = rules.repeat_window(integration_s, nominal_window_s, REPEAT_WINDOW_FRAMES)
     if profile is Profile.ARDUPILOT:
-        return np.where((body_x_rad_s == 0.0) & (body_y_rad_s == 0.0), window, math.inf)
+        return rules.select((body_x_rad_s == 0.0) & (body_y_rad_s == 0.0), window, math.inf)
     return window
 
 

@@ -26,6 +26,14 @@ FRAME_REBOOT_S = 1.0
 MAX_SPACING_FRAMES = 5.0
 
 
+def select(condition: Any, if_true: Any, if_false: Any) -> Any:
+    """``np.where`` over columns; on one frame (a bool condition) the value chosen, without the
+    few microseconds ``np.where`` takes on scalars."""
+    if isinstance(condition, (bool, np.bool_)):
+        return if_true if condition else if_false
+    return np.where(condition, if_true, if_false)
+
+
 # -- per-frame gates (core.GATE_CAUSES: the order in which they are checked) ---------------------
 
 
@@ -66,13 +74,13 @@ def scene_spike(rate_x_rad_s: Any, rate_y_rad_s: Any, max_rate_rad_s: float) -> 
 def spacing(dt_s: Any, nominal_s: float) -> Any:
     """The time a frame's flow covers from the time since the previous frame ``dt_s``: itself
     when plausible (0 < dt <= ``MAX_SPACING_FRAMES`` frames), else the nominal period (NaN: nominal)."""
-    return np.where((dt_s > 0.0) & (dt_s <= MAX_SPACING_FRAMES * nominal_s), dt_s, nominal_s)
+    return select((dt_s > 0.0) & (dt_s <= MAX_SPACING_FRAMES * nominal_s), dt_s, nominal_s)
 
 
 def covered_span(integration_s: Any, frame_dt_s: Any) -> Any:
     """The time a frame's flow covers (s): the integration time its message states (finite and
     > 0), else the frame spacing ``frame_dt_s``."""
-    return np.where(np.isfinite(integration_s) & (integration_s > 0.0), integration_s, frame_dt_s)
+    return select(np.isfinite(integration_s) & (integration_s > 0.0), integration_s, frame_dt_s)
 
 
 def clip_speed(v_m_s: Any, max_m_s: float) -> Any:
@@ -98,7 +106,7 @@ def repeat_window(integration_s: Any, nominal_window_s: float, frames: float) ->
     """The window within which the same payload again is the same sample: ``frames`` of the
     reading's own span when the message states one (finite, > 0), else the nominal window."""
     own = np.isfinite(integration_s) & (integration_s > 0.0)
-    return np.where(own, frames * integration_s, nominal_window_s)
+    return select(own, frames * integration_s, nominal_window_s)
 
 
 def is_repeat(dt_s: Any, same_payload: Any, window_s: Any) -> Any:
