@@ -304,7 +304,7 @@ class _Axis:
 
     __slots__ = ("v", "b", "c", "e", "p00", "p01", "p02", "p03", "p11", "p12", "p13", "p22", "p23", "p33",
                  "ready", "steps", "mix", "z1", "z2", "t1", "t2", "r_data", "n_data", "nu", "nu_var", "p_step",
-                 "steps_found", "bank", "weights", "logw", "search")
+                 "steps_found", "bank", "weights", "logw", "accel_input")
 
     def __init__(self, s: KalmanSettings) -> None:
         self.b = 0.0
@@ -316,25 +316,24 @@ class _Axis:
         self.n_data = 0
         self.steps_found = 0
         self.logw = 0.0
-        self.search = True  # steps in the disturbance are searched for (``accelerometer_input``)
+        self.accel_input = False  # the accelerometer is the prediction's input (``accelerometer_input``)
         self.restart(s)
 
     def accelerometer_input(self) -> None:
-        """The accelerometer is the prediction's input: it measures the gusts with every other
-        force, so no step in the disturbance is searched for from now on: what the disturbance
-        state still holds (the accelerometer's bias, the attitude's trim, second-order terms)
-        drifts slowly, and a gust, which the step prior describes, is in the input; the drag rate
-        holds only what the input misses in proportion to the velocity: its standard deviation is
-        brought to ``ACCEL_DRAG_PRIOR_PER_S`` if larger (its covariances scaled with it)
-        (docs/estimator.md)."""
-        self.search = False
-        self.steps, self.mix, self.bank, self.weights = [], [], [], []
-        self.p_step = 0.0
+        """The accelerometer is the prediction's input from now on: it measures the drag with every
+        other force, so the drag rate holds only what the input misses in proportion to the
+        velocity: its standard deviation is brought to ``ACCEL_DRAG_PRIOR_PER_S`` if larger (its
+        covariances scaled with it). The disturbance state holds the accelerometer's bias, the
+        attitude's trim and second-order terms; the step search stays, as the repair of a wrong
+        disturbance (docs/estimator.md: a gust is in the input, the steps it takes are not gusts)."""
+        self.accel_input = True
         k = min(1.0, ACCEL_DRAG_PRIOR_PER_S / math.sqrt(self.p22)) if self.p22 > 0.0 else 1.0
         self.p02 *= k
         self.p12 *= k
         self.p23 *= k
         self.p22 *= k * k
+        for hyp in self.bank:
+            hyp.accelerometer_input()
 
     def unlink(self, s: KalmanSettings) -> None:
         """The previous frame's quantization error is not known (no frame just before this one)."""
@@ -422,7 +421,7 @@ class _Axis:
         h = object.__new__(_Axis)
         for name in ("v", "b", "c", "e", "p00", "p01", "p02", "p03", "p11", "p12", "p13", "p22", "p23", "p33",
                      "ready", "z1", "z2", "t1", "t2", "r_data", "n_data", "nu", "nu_var", "p_step", "steps_found",
-                     "search"):
+                     "accel_input"):
             setattr(h, name, getattr(self, name))
         h.steps, h.mix, h.bank, h.weights = [], [], [], []
         var = s.step_sigma_m_s2 ** 2
@@ -930,7 +929,7 @@ class VelocityKalman:
         self.last_time_s = time_s
         r_model = (s.model_variance(z_x, range_m), s.model_variance(z_y, range_m))
         r = []
-        if self.accel and axes[0].search:  # the accelerometer is the input from now on
+        if self.accel and not axes[0].accel_input:  # the accelerometer is the input from now on
             for ax in axes:
                 ax.accelerometer_input()
         for ax, z, rm in zip(axes, (z_x, z_y), r_model, strict=True):
@@ -960,7 +959,7 @@ class VelocityKalman:
             t_m = max(t_m, h)  # a sample older than the horizon is fused at the horizon
             ix, iy, jx, jy = self._input(h, t_m)
             for ax, a_int, z, rr, q, j in zip(axes, (ix, iy), (z_x, z_y), r, self.input_psd, (jx, jy), strict=True):
-                ax.predict(a_int, t_m - h, s, search=ax.search, input_psd=q, input_var=j)
+                ax.predict(a_int, t_m - h, s, input_psd=q, input_var=j)
                 ax.fuse(z, rr, g, s)
         self.horizon_s = t_m
         t_out = max(time_s, self.attitude[-1][0])
