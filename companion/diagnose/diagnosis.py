@@ -232,7 +232,7 @@ def _force_terms(data: FlightData, fp: FlowProblem, res: GroupResult, i: int) ->
            ("velocity |velocity|", "a quadratic (form) drag", "m^2/s^2", v[i] * np.abs(v[i])),
            ("sign(velocity)", "a constant-magnitude friction-like force", "1", np.tanh(v[i] / 0.05)),
            ("constant", "a steady force (wind, or a tilt-estimate offset)", "1", np.ones(data.n)),
-           ("tilt", "a thrust or tilt-estimate scale error", "rad", ang[i]),
+           ("tilt", "a thrust or tilt-estimate scale error, or a flow scale error on this axis", "rad", ang[i]),
            ("height", "ground effect", "m", data.range_m),
            ("climb rate", "thrust changes while climbing", "m/s", climb),
            ("other-axis velocity", "coupling between the axes", "m/s", v[o])]
