@@ -685,12 +685,13 @@ def every_cause_flights(tmp_path_factory, paper_cfg) -> dict[Profile, Path]:
 
 def _option_cases() -> dict[str, tuple[EstimatorOptions, dict[str, dict[str, Any]]]]:
     """Every choice of ``EstimatorOptions`` (gyro source x velocity estimator, the tilt filter
-    given with its own gains, the Kalman filter with its own settings), and one config whose
-    step parameters (``StepParams``, ``PlausibilityParams``) all differ from the paper's."""
+    given with its own gains, the Kalman filter with its own settings: ``OWN_KALMAN``), and one
+    config whose step parameters (``StepParams``, ``PlausibilityParams``) all differ from the
+    paper's."""
     cases: dict[str, tuple[EstimatorOptions, dict[str, dict[str, Any]]]] = {
         f"{g.value}-{e.value}": (EstimatorOptions(g, None, e), {}) for g in GyroSource for e in VelocityEstimator}
     cases["tilt-gains"] = (EstimatorOptions(GyroSource.IMU, TiltFilter(0.3, 8.0, 0.05)), {})
-    cases["kf-settings"] = (EstimatorOptions(GyroSource.AUTO, None, VelocityEstimator.KF, "own settings"), {})
+    cases[OWN_KALMAN] = (EstimatorOptions(GyroSource.AUTO, None, VelocityEstimator.KF), {})
     cases["other-params"] = (EstimatorOptions(GyroSource.AUTO, None, VelocityEstimator.AUTO), {
         "companion": {"max_gyro_skew_s": 0.025, "range_timeout_s": 0.3, "max_flow_rate_rad_s": 5.0,
                       "max_speed_m_s": 1.5},
@@ -700,6 +701,8 @@ def _option_cases() -> dict[str, tuple[EstimatorOptions, dict[str, dict[str, Any
     return cases
 
 
+#: the case whose Kalman filter has settings of its own (``EstimatorOptions.kalman``), not the config's
+OWN_KALMAN = "kf-settings"
 OPTION_CASES = _option_cases()
 
 
@@ -713,7 +716,7 @@ def _case(paper_cfg: Any, prof: Profile, name: str) -> tuple[Any, EstimatorOptio
     cfg = paper_cfg
     for section, changes in sections.items():
         cfg = C.replace_section(cfg, section, **changes)
-    if options.kalman == "own settings":  # settings of the filter's own, not the config's
+    if name == OWN_KALMAN:
         own = dataclasses.replace(kalman_settings(cfg, prof), flow_sample_age_s=0.004, step_rate_per_s=0.3)
         options = dataclasses.replace(options, kalman=own)
     return cfg, options
