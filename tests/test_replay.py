@@ -686,8 +686,9 @@ def every_cause_flights(tmp_path_factory, paper_cfg) -> dict[Profile, Path]:
 def _option_cases() -> dict[str, tuple[EstimatorOptions, dict[str, dict[str, Any]]]]:
     """Every choice of ``EstimatorOptions`` (gyro source x velocity estimator, the tilt filter
     given with its own gains, the Kalman filter with its own settings: ``OWN_KALMAN``), and one
-    config whose step parameters (``StepParams``, ``PlausibilityParams``) all differ from the
-    paper's."""
+    config whose step parameters all differ from the paper's (``StepParams``: frame period,
+    gravity, limits, gains; ``PlausibilityParams``, derived from Q, the tilt limit and the frame
+    period)."""
     cases: dict[str, tuple[EstimatorOptions, dict[str, dict[str, Any]]]] = {
         f"{g.value}-{e.value}": (EstimatorOptions(g, None, e), {}) for g in GyroSource for e in VelocityEstimator}
     cases["tilt-gains"] = (EstimatorOptions(GyroSource.IMU, TiltFilter(0.3, 8.0, 0.05)), {})
@@ -696,7 +697,7 @@ def _option_cases() -> dict[str, tuple[EstimatorOptions, dict[str, dict[str, Any
         "companion": {"max_gyro_skew_s": 0.025, "range_timeout_s": 0.3, "max_flow_rate_rad_s": 5.0,
                       "max_speed_m_s": 1.5},
         "controller": {"kp_rad_per_m_s": 0.3, "ki_rad_per_m": 0.1, "tilt_limit_deg": 15.0},
-        "flow_sensor": {"q_rad_per_count": 0.002},
+        "flow_sensor": {"q_rad_per_count": 0.002, "frame_rate_hz": 40.0}, "airframe": {"gravity_m_s2": 9.80665},
         "rangefinder": {"min_m": 0.05, "max_m": 3.5}})
     return cases
 
