@@ -411,3 +411,41 @@ def test_the_live_loop_reaches_into_no_field_of_the_core():
         text = (ROOT / "companion" / name).read_text(encoding="utf-8")
         for reach in (".pi.state", ".plausible.", "last_setpoint_time", "classify_frame("):
             assert reach not in text, (name, reach)
+
+
+def test_every_session_cause_is_held_by_a_session_here(monkeypatch):
+    """The hold causes no step returns (``core.SESSION_CAUSES``; the step's are held equal across
+    its forms in tests/test_replay.py) are each reached by the session, in the situations the
+    tests above check in detail: the flow stale on the vehicle's clock, the link lost, a stall,
+    frames that keep coming too old (a backlog). A new session cause fails here until a
+    situation shows it."""
+    from companion.core import SESSION_CAUSES
+
+    seen: set[HoldCause] = set()
+
+    def bench() -> Bench:
+        b = Bench()
+        update = b.s.monitor.update
+        monkeypatch.setattr(b.s.monitor, "update", lambda cause, now_s: (seen.add(cause), update(cause, now_s))[1])
+        b.in_control(5)
+        return b
+
+    b = bench()  # the flow stops, the gyro runs on
+    for _ in range(round(2 * TIMEOUT_S / T_S)):
+        b.gyro_only() + b.tick()
+        b.now_s += T_S
+    b = bench()  # nothing from the vehicle
+    for _ in range(round(2 * TIMEOUT_S / T_S)):
+        b.now_s += T_S
+        b.tick()
+    b = bench()  # the caller stood still
+    b.now_s += 2.0
+    b.s.on_stall(2.0, b.now_s)
+    b = bench()  # a gyro sample 0.4 s ahead, then only flow frames 0.4 s old: each too old to fly on
+    frames = [b.frame_messages() for _ in range(40)]
+    b.handle(frames[20][:1])
+    for f in frames[:20]:
+        b.handle(f[2:])
+        b.now_s += T_S
+        b.tick()
+    assert set(SESSION_CAUSES) <= seen, set(SESSION_CAUSES) - seen
