@@ -403,12 +403,13 @@ static inline int format_g_fast(double x, int P, char *o) {
     double lo = POW10_AT(P - 1), hi = POW10_AT(P);
     if (!(fabs(frac - 0.5) > hi * 1e-15) || d < lo || d >= hi) return 0;
     uint64_t D = (uint64_t)d;
+    int nd = P; /* the digits shown: trailing zeros dropped (counted on D: a digit loop over the
+                 * text just written stalls on its stores, and mispredicts) */
+    for (uint64_t q = D; nd > 1 && q % 10 == 0; q /= 10) nd--;
     char buf16[16];
-    put8(buf16, (uint32_t)(D / 100000000u));
+    if (P > 8) put8(buf16, (uint32_t)(D / 100000000u));
     put8(buf16 + 8, (uint32_t)(D % 100000000u));
     const char *dig = buf16 + 16 - P; /* P <= 15 */
-    int nd = P;
-    while (nd > 1 && dig[nd - 1] == '0') nd--;
     char *p = o;
     if (x < 0) *p++ = '-';
     if (e < -4 || e >= P) { /* d.ddde+XX */
