@@ -372,6 +372,39 @@ static inline void put8(char *o, uint32_t v) { /* v < 10^8 as exactly 8 digits *
     memcpy(o + 6, DIGITS2 + 2 * (b % 100), 2);
 }
 
+/* the 8 ASCII digits of v < 10^8 (leading zeros included) as a little-endian word: the most
+ * significant digit in the lowest byte */
+static inline uint64_t digits8(uint32_t v) {
+    uint32_t a = v / 10000, b = v % 10000;
+    uint16_t d0, d1, d2, d3;
+    memcpy(&d0, DIGITS2 + 2 * (a / 100), 2);
+    memcpy(&d1, DIGITS2 + 2 * (a % 100), 2);
+    memcpy(&d2, DIGITS2 + 2 * (b / 100), 2);
+    memcpy(&d3, DIGITS2 + 2 * (b % 100), 2);
+    return (uint64_t)d0 | (uint64_t)d1 << 16 | (uint64_t)d2 << 32 | (uint64_t)d3 << 48;
+}
+
+/* Bytes j.. of the 16-byte string (s0, s1) stored at o: 16 bytes are written (the caller's slot
+ * has room; what follows the digits is overwritten or past the text's length). */
+static inline void put_from(char *o, uint64_t s0, uint64_t s1, int j) {
+    uint64_t t0, t1;
+    if (j == 0) {
+        t0 = s0;
+        t1 = s1;
+    } else if (j < 8) {
+        t0 = (s0 >> (8 * j)) | (s1 << (64 - 8 * j));
+        t1 = s1 >> (8 * j);
+    } else if (j == 8) {
+        t0 = s1;
+        t1 = 0;
+    } else {
+        t0 = s1 >> (8 * (j - 8));
+        t1 = 0;
+    }
+    memcpy(o, &t0, 8);
+    memcpy(o + 8, &t1, 8);
+}
+
 /* floor(log10(ax)) for a positive normal double, up to the exactness of the POW10 thresholds
  * (a value within an ulp of a power of ten may get the power's exponent: both choices print
  * the same text, see format_g_fast); INT32_MIN when outside the table (the slow path). */
@@ -403,20 +436,34 @@ static inline int format_g_fast(double x, int P, char *o) {
     double lo = POW10_AT(P - 1), hi = POW10_AT(P);
     if (!(fabs(frac - 0.5) > hi * 1e-15) || d < lo || d >= hi) return 0;
     uint64_t D = (uint64_t)d;
-    int nd = P; /* the digits shown: trailing zeros dropped (counted on D: a digit loop over the
-                 * text just written stalls on its stores, and mispredicts) */
-    for (uint64_t q = D; nd > 1 && q % 10 == 0; q /= 10) nd--;
-    char buf16[16];
-    if (P > 8) put8(buf16, (uint32_t)(D / 100000000u));
-    put8(buf16 + 8, (uint32_t)(D % 100000000u));
-    const char *dig = buf16 + 16 - P; /* P <= 15 */
+    int nd = P; /* the digits shown: D's trailing zeros dropped (at most P - 1: D >= 10^(P-1)),
+                 * counted 8, 4, 2, 1 at a time: no loop as long as the zeros */
+    if (D % 10 == 0) {
+        uint64_t q = D;
+        if (q % 100000000u == 0) q /= 100000000u, nd -= 8;
+        if (q % 10000u == 0) q /= 10000u, nd -= 4;
+        if (q % 100u == 0) q /= 100u, nd -= 2;
+        if (q % 10u == 0) nd -= 1;
+    }
+    /* the P digits as a string S of two little-endian words (S[0] in the lowest byte of s0), kept
+     * in registers and only stored: text written and read back at once stalls on its stores */
+    uint64_t s0, s1;
+    if (P <= 8) {
+        s0 = digits8((uint32_t)D) >> (8 * (8 - P));
+        s1 = 0;
+    } else {
+        uint64_t hi = digits8((uint32_t)(D / 100000000u)), lo = digits8((uint32_t)(D % 100000000u));
+        int k = P - 8; /* 1..7 digits in hi */
+        s0 = (hi >> (8 * (8 - k))) | (lo << (8 * k));
+        s1 = lo >> (8 * (8 - k));
+    }
     char *p = o;
     if (x < 0) *p++ = '-';
     if (e < -4 || e >= P) { /* d.ddde+XX */
-        *p++ = dig[0];
+        *p++ = (char)(s0 & 0xFF);
         if (nd > 1) {
             *p++ = '.';
-            memcpy(p, dig + 1, (size_t)(nd - 1));
+            put_from(p, s0, s1, 1);
             p += nd - 1;
         }
         *p++ = 'e';
@@ -429,15 +476,15 @@ static inline int format_g_fast(double x, int P, char *o) {
         *p++ = '0';
         *p++ = '.';
         for (int64_t j = 0; j < -e - 1; j++) *p++ = '0';
-        memcpy(p, dig, (size_t)nd);
+        put_from(p, s0, s1, 0);
         p += nd;
     } else { /* ddd.ddd, or the digits up to the point (zeros included) */
         int whole = (int)e + 1;
-        memcpy(p, dig, (size_t)whole);
+        put_from(p, s0, s1, 0);
         p += whole;
         if (nd > whole) {
             *p++ = '.';
-            memcpy(p, dig + whole, (size_t)(nd - whole));
+            put_from(p, s0, s1, whole);
             p += nd - whole;
         }
     }
@@ -498,7 +545,8 @@ static inline int format_d(int64_t v, char *o) {
 }
 
 #define CSV_BLOCK 64 /* rows formatted column by column before they are laid out */
-#define CSV_SLOT 32  /* bytes per formatted number (at most 23 are used) */
+#define CSV_SLOT 32  /* bytes per formatted number (at most 23 are text; format_g_fast's 16-byte
+                      * stores of digits reach at most byte 32) */
 
 /* Rows [0, n) of ncols columns as CSV text into out (capacity cap bytes; the caller sizes it
  * with a row bound: the widest text of each column plus a separator), returning the bytes
