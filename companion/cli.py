@@ -110,24 +110,45 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _one_blas_thread() -> None:
-    """One OpenBLAS thread for ``replay`` and ``info``, unless the user chose otherwise: they do
-    no large linear algebra, and OpenBLAS's idle threads, started when numpy loads, spin for
-    about 0.1 s of CPU each before they sleep, taking the core the compiled reader's and CSV
-    writer's second thread would run on (docs/performance.md). Only before numpy is loaded
-    (after, it has no effect)."""
+#: glibc's mallopt parameters (malloc.h)
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+
+
+def _batch_process() -> None:
+    """``replay`` and ``info`` read a recording, work on it and exit: set this process up for
+    that (docs/performance.md).
+
+    - One OpenBLAS thread, unless the user chose otherwise: they do no large linear algebra, and
+      OpenBLAS's idle threads, started when numpy loads, spin for about 0.1 s of CPU each before
+      they sleep, taking the core the compiled reader's and CSV writer's second thread would run
+      on. Only before numpy is loaded (after, it has no effect).
+    - With glibc, memory freed is kept for the next allocation rather than given back to the
+      system (allocations under 64 MB from the heap, no trimming): numpy's temporaries of a long
+      recording's columns were otherwise mapped and unmapped again and again, and every fresh
+      page costs a fault and its zeroing. The memory goes back at exit."""
     if "numpy" not in sys.modules:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            libc = ctypes.CDLL(None)
+            mallopt = libc.mallopt
+        except (OSError, AttributeError):  # not glibc (musl has no mallopt)
+            return
+        mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+        mallopt(_M_MMAP_THRESHOLD, 64 << 20)
+        mallopt(_M_TRIM_THRESHOLD, 1 << 30)
 
 
 def _dispatch(command: str) -> Callable[[argparse.Namespace], int]:
     if command == "run":
         from companion.live import run_cli
     elif command == "replay":
-        _one_blas_thread()
+        _batch_process()
         from companion.replay import run_cli
     elif command == "info":
-        _one_blas_thread()
+        _batch_process()
         from companion.info import run_cli
     elif command == "fleet":
         from companion.fleet.run import run_cli

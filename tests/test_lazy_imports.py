@@ -44,3 +44,18 @@ def test_parquet_loads_pyarrow_only_when_asked(flight_a_plain, tmp_path):
     assert r["code"] == 0
     assert "pyarrow" in r["heavy"]
     assert not {"numba", "scipy", "matplotlib"} & set(r["heavy"])
+
+
+@pytest.mark.parametrize("preset", [None, "3"])
+def test_replay_and_info_load_numpy_with_one_blas_thread_unless_told(preset):
+    """replay and info set OPENBLAS_NUM_THREADS=1 before numpy loads (its idle threads spin on
+    the core the reader's and CSV writer's second thread needs); a value the user set stays."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if preset is not None:
+        env["OPENBLAS_NUM_THREADS"] = preset
+    probe = ("import os, sys\nfrom companion.cli import _batch_process\n_batch_process()\n"
+             "import numpy\nprint(os.environ['OPENBLAS_NUM_THREADS'])")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=ROOT, env=env, check=True)
+    assert out.stdout.strip() == (preset or "1")
