@@ -343,7 +343,8 @@ def _synthetic_steps(settings: estimator.KalmanSettings, range_m: float, counts:
 def false_alarms() -> list[str]:
     """Steps taken where there are none (docs/estimator.md)."""
     lines = []
-    paper = replace_section(load_config(), "companion", velocity_estimator="kf")
+    tv = _test_module()
+    paper = tv.kf_config(load_config())  # the accelerometer with a MEMS IMU's noise, as the tests fly it
     counts = kalman_settings(paper, Profile.PAPER)
     sitl_cfg = load_config(CONFIG)
     rates = dataclasses.replace(kalman_settings(sitl_cfg, Profile.ARDUPILOT), flow_noise_rad_s=0.029,
@@ -363,7 +364,6 @@ def false_alarms() -> list[str]:
         fused = int(np.isfinite(res["vx_var_m2_s2"]).sum())
         lines.append(f"SITL {fl.upper()} (the whole recording, ground and take-off included): {n[0]} steps on the "
                      f"two axes over {fused} frames ({fused * 0.02:.0f} s)")
-    tv = _test_module()
     for alt in (1.0, 2.0, 3.0):
         cfg = replace_section(paper, "world", altitude_m=alt)
         for what, setpoint in (("the tests' 0.3/0.2 Hz setpoints", tv.excite),
@@ -384,7 +384,7 @@ def random_flights(seed: int, n: int, tv) -> list[tuple[str, dict]]:
     from companion.config import LinearDrag, WindForce, with_effects
 
     rng = np.random.default_rng(seed)
-    base = replace_section(load_config(), "companion", velocity_estimator="kf")
+    base = tv.kf_config(load_config())
     out = []
     for _ in range(n):
         alt = float(rng.choice([0.5, 1.0, 1.5, 2.0, 3.0]))
@@ -477,7 +477,7 @@ def robustness(demo: Path | None) -> list[str]:
                                                                  if before else ""))
     lines.append(f"  {len(flights) - missed} of {len(flights)} meet all three (without the accelerometer "
                  f"{len(flights) - missed_before})")
-    base = replace_section(load_config(), "companion", velocity_estimator="kf")
+    base = tv.kf_config(load_config())
     lines.append("turbulence (Gauss-Markov force, 1 s; the tests' setpoints; seeds 0-2): worst over the seeds and axes")
     for sigma in (0.1, 0.3, 1.0):
         for alt in (1.0, 3.0):

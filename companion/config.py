@@ -67,15 +67,17 @@ class FlowSensor:
 class Imu:
     """Gyro model. Noise is off unless ``gyro_noise``; the density is the VN-100's (Table II).
     Accelerometer model (issue 19; the simulator's truth, the companion's noise model): body FRD
-    specific force with white noise of this density (a sample's 1 sigma is density x sqrt(rate))
-    and a constant bias on x and y, saturating at its range; ``accelerometer`` false: RAW_IMU's
-    accelerometer fields hold the (0, 0, -1000) mg placeholder older recordings have."""
+    specific force with, when ``accel_noise``, white noise of this density (a sample's 1 sigma is
+    density x sqrt(rate); off in the paper's noise-free simulation, as the gyro's) and a constant
+    bias on x and y, saturating at its range; ``accelerometer`` false: RAW_IMU's accelerometer
+    fields hold the (0, 0, -1000) mg placeholder older recordings have."""
 
     rate_hz: float
     gyro_noise: bool
     gyro_noise_density_deg_s_sqrt_hz: float
     gyro_range_deg_s: float
     accelerometer: bool
+    accel_noise: bool
     accel_noise_density_m_s2_sqrt_hz: float
     accel_bias_x_m_s2: float
     accel_bias_y_m_s2: float

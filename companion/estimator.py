@@ -270,7 +270,8 @@ class KalmanSettings:
                    disturbance_psd=DISTURBANCE_DRIFT_M_S2 ** 2 / DISTURBANCE_DRIFT_S,
                    drag_psd=DRAG_DRIFT_PER_S_SQRT_S ** 2,
                    use_accelerometer=cfg.companion.use_accelerometer,
-                   accel_noise_m_s2=cfg.imu.accel_noise_density_m_s2_sqrt_hz * math.sqrt(cfg.imu.rate_hz))
+                   accel_noise_m_s2=cfg.imu.accel_noise_density_m_s2_sqrt_hz * math.sqrt(cfg.imu.rate_hz)
+                   if cfg.imu.accel_noise else 0.0)
 
     def sample_time_s(self, time_s: float, span_s: float) -> float:
         """When the flow sample of a message stamped ``time_s`` covering ``span_s`` was taken."""

@@ -269,6 +269,7 @@ class Simulator:
             a_y = axis_derivative(self.y, u_roll, force_y_n, altitude_m, AXIS_SIGN[1], p=self.params)[2]
             f = specific_force(self.y[1], self.x[1], a_x, a_y, 0.0, self.params.gravity_m_s2)
         return accel_sample(*f, self.accel_rng, bias_x_m_s2=self.accel_bias[0], bias_y_m_s2=self.accel_bias[1],
-                            noise_density_m_s2_sqrt_hz=imu.accel_noise_density_m_s2_sqrt_hz, rate_hz=imu.rate_hz,
+                            noise_density_m_s2_sqrt_hz=imu.accel_noise_density_m_s2_sqrt_hz if imu.accel_noise else 0.0,
+                            rate_hz=imu.rate_hz,
                             range_m_s2=imu.accel_range_m_s2)
 

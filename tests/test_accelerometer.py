@@ -121,7 +121,7 @@ def test_without_an_accelerometer_raw_imu_holds_the_placeholder(paper_cfg):
 def test_the_accelerometer_noise_leaves_the_other_sensors_draws_alone(paper_cfg):
     """Its noise comes from its own stream: the rangefinder's noisy readings are those of a vehicle
     without an accelerometer, draw for draw."""
-    cfg = replace_section(paper_cfg, "rangefinder", noise_std_m=0.01)
+    cfg = replace_section(replace_section(paper_cfg, "rangefinder", noise_std_m=0.01), "imu", accel_noise=True)
     runs = []
     for acc in (True, False):
         sim = Simulator(replace_section(cfg, "imu", accelerometer=acc), rng=np.random.default_rng(5))

@@ -23,7 +23,6 @@ import numpy as np
 import pytest
 from loop_helpers import PY, REPO, Gcs, Procs, free_udp_port, mav
 
-from companion.config import load_config
 from companion.outbound import euler_to_quaternion, quaternion_to_euler
 from companion.profiles import Profile
 from simvehicle.scenarios import SCENARIOS, figures, fly
@@ -444,23 +443,14 @@ def test_companion_detects_the_vehicles_profile_before_taking_control(tmp_path, 
     """Issue 14: without ``--profile`` the companion assumed paper and sat in "HOLD flow stale" for the
     whole flight against an ArduPilot-convention vehicle. It now tells the profile from the vehicle's
     first frames (the flow's time_usec in ms against the vehicle's clock), says which and why, and
-    then flies the step exactly as fly() does in that profile. The frames before the profile is known
-    are not flown, so the companion's Kalman filter starts a few frames later than fly()'s: the
-    accelerometer's white noise off (the paper's noise-free simulation, as the gyro's), so that the
-    vehicle at rest gives the filter nothing before it starts (with the noise the two starts differ
-    by the noise integrated over those frames, and the estimates by up to 0.008 m/s)."""
+    then flies the step exactly as fly() does in that profile."""
     import dataclasses
 
     vt = tmp_path / "vehicle.tlog"
-    cfg_path = tmp_path / "quiet_accelerometer.toml"
-    cfg_path.write_text((REPO / "configs" / "paper.toml").read_text().replace(
-        "accel_noise_density_m_s2_sqrt_hz = 0.0042", "accel_noise_density_m_s2_sqrt_hz = 0.0"))
-    cfg = load_config(cfg_path)
-    assert cfg.imu.accel_noise_density_m_s2_sqrt_hz == 0.0
     with Procs(tmp_path) as procs:
         veh, port = procs.vehicle("--lockstep", "--scenario", "step", "--duration", "5.4", "--profile", "ardupilot",
-                                  "--tlog", str(vt), "--config", str(cfg_path))
-        comp = procs.companion(port, "--arm", "--quiet", "--config", str(cfg_path))
+                                  "--tlog", str(vt))
+        comp = procs.companion(port, "--arm", "--quiet")
         assert veh.wait(timeout_s=300) == 0, veh.text()
         assert comp.stop() == 0
     log = comp.text()
@@ -468,7 +458,7 @@ def test_companion_detects_the_vehicles_profile_before_taking_control(tmp_path, 
     assert "milliseconds" in log and "HEARTBEAT autopilot ArduPilot" in log
     assert log.index("sensor profile ardupilot") < log.index("flowhold: in control")
     assert "HOLD" not in log.split("flowhold: in control")[1].split("HOLD link lost")[0]
-    ref = fly(cfg, dataclasses.replace(SCENARIOS["step"], duration_s=5.4), profile=Profile.ARDUPILOT)
+    ref = fly(paper_cfg, dataclasses.replace(SCENARIOS["step"], duration_s=5.4), profile=Profile.ARDUPILOT)
     run = recording_run(vt, name="step")
     for col, tol in (("vx_m_s", F32_VEL_TOL_M_S), ("vy_m_s", F32_VEL_TOL_M_S), ("pitch_cmd_rad", 1e-6),
                      ("roll_cmd_rad", 1e-6)):

@@ -145,7 +145,10 @@ def rms_and_lag(run: dict[str, np.ndarray], est: str, t0_s: float = 2.0) -> tupl
 
 
 def kf_config(base, **companion):
-    return replace_section(base, "companion", velocity_estimator="kf", **companion)
+    """The filter flown, on a vehicle whose accelerometer has a MEMS IMU's white noise (0.030 m/s^2 a
+    sample: ``[imu] accel_noise``, off in configs/paper.toml's noise-free simulation)."""
+    return replace_section(replace_section(base, "companion", velocity_estimator="kf", **companion), "imu",
+                           accel_noise=True)
 
 
 def _aged(base, age_s: float):
@@ -289,7 +292,7 @@ def test_the_paper_scenarios_still_hold_on_the_kalman_filter(paper_cfg):
     paper's simulation, which has no sensor noise: the accelerometer's white noise off as the
     gyro's is (with it, 0.03 m/s^2 a sample, the slow motion of Fig. 19 jitters by a count: a +1
     among its 0 and -1, the first count 0.3 s after the command on x)."""
-    cfg = replace_section(kf_config(paper_cfg), "imu", accel_noise_density_m_s2_sqrt_hz=0.0)
+    cfg = replace_section(kf_config(paper_cfg), "imu", accel_noise=False)
     figs = {name: figures(run_named(name, cfg), cfg) for name in ("step", "gust", "slow")}
     for axis in ("x", "y"):
         f = figs["step"][axis]
