@@ -1,5 +1,3 @@
-import sys
+from companion.cli import finish, main
 
-from companion.cli import main
-
-sys.exit(main())
+finish(main())
