@@ -237,7 +237,8 @@ def command(args: list[str], repeat: int = 2, timeout_s: float = 3600.0, env: di
 
 _PHASES = """
 import json, os, resource, sys, time
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the replay and info commands load numpy (companion.cli)
+from companion.cli import _batch_process
+_batch_process()  # as the replay and info commands set up their process (one BLAS thread, memory kept)
 t0 = time.perf_counter()
 import numpy
 t1 = time.perf_counter()
