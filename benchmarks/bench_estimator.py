@@ -31,9 +31,10 @@ Also printed: the flow sample's age at the companion's OPTICAL_FLOW on C0, measu
 autopilot's own DataFlash log of that flight (its OF records carry the sample's time; matched to
 the tlog's messages by their float payload): what ``flow_sample_age_s`` in the config is made of.
 ``--sensitivity`` reruns the Kalman filter with each noise level x1/4 and x4 (the accelerometer's
-x1/2 and x2), the step prior's rate x1/3 and x3 and size x1/2 and x2, and the age +-5 ms; with
-``--sim``, the simulator's worst condition for each change of the step prior. ``--sim`` prints
-instead the table of docs/estimator.md: the conditions of tests/test_velocity_kf.py (the companion flying the filter in
+white noise at least 0.03 and 0.06 m/s^2 a sample), the step prior's rate x1/3 and x3 and size x1/2
+and x2, and the age +-5 ms; with ``--sim``, the simulator's worst condition for each change of the
+step prior. ``--sim`` prints instead the table of docs/estimator.md: the conditions of
+tests/test_velocity_kf.py (the companion flying the filter in
 the reference simulator, in process), its RMS, lag and variance against eq. 15's on the same frames,
 and the filter's RMS and lag without the accelerometer.
 ``--false-alarms`` counts the steps the filter takes where there are none: on synthetic eq. 15 whose
@@ -81,7 +82,10 @@ LAG_STEP_S = 0.00025
 SEGMENTS = 5
 #: the sensitivity study: each process noise x1/4 and x4, the step prior's rate x1/3 and x3, its size x1/2 and x2
 PSD_CHANGES = (("accel_psd", 0.25), ("accel_psd", 4.0), ("disturbance_psd", 0.25), ("disturbance_psd", 4.0),
-               ("drag_psd", 0.25), ("drag_psd", 4.0), ("accel_noise_m_s2", 0.5), ("accel_noise_m_s2", 2.0))
+               ("drag_psd", 0.25), ("drag_psd", 4.0))
+#: the accelerometer's white noise floor (m/s^2 a sample) in place of the config's (off in
+#: configs/ardupilot_sitl.toml: the noise measured on the recording): the simulator's MEMS figure and twice it
+ACCEL_NOISE_FLOORS = (0.03, 0.06)
 STEP_CHANGES = (("step_rate_per_s", 1 / 3), ("step_rate_per_s", 3.0), ("step_sigma_m_s2", 0.5),
                 ("step_sigma_m_s2", 2.0))
 #: issue 19's targets: per axis RMS at or below EKF3's on E1, and |lag| <= 3 ms
@@ -230,6 +234,8 @@ def _sensitivity(comp: Recording, cfg, truth: Truth) -> dict:
     cases = {"as configured": base}
     for f, factor in (*PSD_CHANGES, *STEP_CHANGES):
         cases[f"{f} x{factor:.3g}"] = dataclasses.replace(base, **{f: getattr(base, f) * factor})
+    for a in ACCEL_NOISE_FLOORS:
+        cases[f"accel noise floor {a:g} m/s^2"] = dataclasses.replace(base, accel_noise_m_s2=a)
     for d in (-0.005, 0.005):
         cases[f"age {d * 1e3:+.0f} ms"] = dataclasses.replace(base, flow_sample_age_s=base.flow_sample_age_s + d)
     out = {}
