@@ -249,15 +249,14 @@ def gyro_sensor(rec: Recording, sysid: int) -> GyroSamples:
 # Range, attitude, commands
 
 
-class RangeReadings:
-    """The vehicle's downward DISTANCE_SENSOR readings (orientation 25), in arrival order, shape
-    (n,): ``record``, ``time_s``, ``reading_m`` the distance as sent (cm -> m), ``valid`` within
-    the sensor's own [min_distance, max_distance]; ``range_m`` is ``reading_m`` where valid, else NaN."""
+class _OneMessage:
+    """One message type's rows in arrival order: ``record``, ``time_s`` and ``time_ms`` (the
+    message's own time field, ``time_s`` / ``time_ms``), ``len``; the subclasses add its fields."""
 
     def __init__(self, table: MessageTable) -> None:
         self.table = table
 
-    @cached_property
+    @property
     def record(self) -> np.ndarray:
         return self.table.record
 
@@ -268,6 +267,15 @@ class RangeReadings:
     @cached_property
     def time_ms(self) -> np.ndarray:
         return time_ms(self.table)
+
+    def __len__(self) -> int:
+        return len(self.table)
+
+
+class RangeReadings(_OneMessage):
+    """The vehicle's downward DISTANCE_SENSOR readings (orientation 25), in arrival order, shape
+    (n,): ``record``, ``time_s``, ``reading_m`` the distance as sent (cm -> m), ``valid`` within
+    the sensor's own [min_distance, max_distance]; ``range_m`` is ``reading_m`` where valid, else NaN."""
 
     @cached_property
     def reading_m(self) -> np.ndarray:
@@ -282,9 +290,6 @@ class RangeReadings:
     def range_m(self) -> np.ndarray:
         return np.where(self.valid, self.reading_m, np.nan)
 
-    def __len__(self) -> int:
-        return len(self.table)
-
 
 def downward_range(rec: Recording, sysid: int) -> RangeReadings | None:
     """The vehicle's downward range readings, or None when it sent none."""
@@ -297,20 +302,9 @@ def downward_range(rec: Recording, sysid: int) -> RangeReadings | None:
     return RangeReadings(ds) if len(ds) else None
 
 
-class Attitude:
+class Attitude(_OneMessage):
     """ATTITUDE (the vehicle's estimate) in arrival order, shape (n,): ``time_s``, and ``roll``,
     ``pitch``, ``yaw`` (rad), ``rollspeed``, ``pitchspeed`` (rad/s) as float64."""
-
-    def __init__(self, table: MessageTable) -> None:
-        self.table = table
-
-    @property
-    def record(self) -> np.ndarray:
-        return self.table.record
-
-    @cached_property
-    def time_s(self) -> np.ndarray:
-        return time_s(self.table)
 
     @cached_property
     def roll(self) -> np.ndarray:
@@ -332,9 +326,6 @@ class Attitude:
     def pitchspeed(self) -> np.ndarray:
         return np.asarray(self.table["pitchspeed"], dtype=float)
 
-    def __len__(self) -> int:
-        return len(self.table)
-
 
 def vehicle_attitude(rec: Recording, sysid: int) -> Attitude | None:
     """The vehicle's ATTITUDE, or None when it sent none."""
@@ -342,21 +333,10 @@ def vehicle_attitude(rec: Recording, sysid: int) -> Attitude | None:
     return None if at is None else Attitude(at)
 
 
-class AttitudeCommand:
+class AttitudeCommand(_OneMessage):
     """Commanded attitudes (the companion's SET_ATTITUDE_TARGET or the vehicle's ATTITUDE_TARGET)
     in arrival order, shape (n,): ``time_s``, ``time_ms``, ``q`` (n, 4) [w, x, y, z] float64,
     ``roll``, ``pitch`` rad (ZYX, ``rotation.quaternions_to_euler``)."""
-
-    def __init__(self, table: MessageTable) -> None:
-        self.table = table
-
-    @cached_property
-    def time_s(self) -> np.ndarray:
-        return time_s(self.table)
-
-    @cached_property
-    def time_ms(self) -> np.ndarray:
-        return time_ms(self.table)
 
     @cached_property
     def q(self) -> np.ndarray:
@@ -373,9 +353,6 @@ class AttitudeCommand:
     @property
     def pitch(self) -> np.ndarray:
         return self._euler[1]
-
-    def __len__(self) -> int:
-        return len(self.table)
 
 
 def companion_commands(rec: Recording) -> AttitudeCommand | None:
