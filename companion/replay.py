@@ -486,7 +486,8 @@ def _kalman(rec: Recording, sysid: int, cfg: Config, profile: Profile, options: 
     if att is None:
         notes.append("no ATTITUDE from the vehicle: the Kalman filter passes eq. 15 through")
         e = np.zeros(0)
-        cols: tuple[np.ndarray, ...] = (np.zeros(0, np.int64), e, e, e, e, e)
+        cols: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] = (
+            np.zeros(0, np.int64), e, e, e, e, e)
     else:
         cols = (att.record, att.time_s, att.roll, att.pitch, att.rollspeed, att.pitchspeed)
     kf = VelocityKalman(settings)
