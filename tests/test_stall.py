@@ -11,10 +11,9 @@ with the companion's last command, as the vehicle would.
 from __future__ import annotations
 
 import math
-from collections import deque
-from typing import Any
 
 import pytest
+from fake_link import FakeLink
 
 from companion import link, outbound
 from companion.config import load_config
@@ -23,8 +22,6 @@ from companion.core import HoldCause
 from companion.link import ClockMapping
 from companion.live import BACKLOG_SAY_FRAMES, LONG_HOLD_S, MAX_FRAME_AGE_FRAMES, HoldMonitor, LiveCompanion
 from companion.profiles import Profile
-from simvehicle import telemetry
-from simvehicle.sim import Simulator
 
 mav = link.mav
 CFG = load_config()
@@ -95,92 +92,17 @@ def test_a_hold_episode_is_said_again_once_after_a_second():
 
 
 # ---------------------------------------------------------------------------------------------
-# The live loop on a fake link
+# The live loop on a fake link (tests/fake_link.py): the vehicle in a 2 N wind on each axis
 
 
-class FakeLink:
-    """A non-UDP pymavlink connection (read by ``recv_msg``, so a message's arrival is when it is
-    read) driven by a fake clock: ``select`` is where time passes. Each frame period the vehicle
-    (the reference simulator in a 2 N wind on each axis) sends its frame; ``stall(s)`` stops the
-    companion for ``s`` seconds while the vehicle flies on level (its GUID_TIMEOUT) and queues
-    its frames; ``burst(n)`` holds ``n`` frames upstream and delivers them at once."""
-
-    def __init__(self, quality: int | None = None) -> None:
-        self.clock = 100.0
-        self.mav = mav.MAVLink(None, srcSystem=1, srcComponent=outbound.COMPANION_COMPONENT)
-        self.veh = mav.MAVLink(None, srcSystem=1, srcComponent=1)
-        self.sim = Simulator(CFG, external_force=lambda _t: (-WIND_N, WIND_N))
-        self.inbox: deque[Any] = deque()
-        self.written: list[Any] = []  # (clock, message) the companion sent
-        self.cmd = (0.0, 0.0)
-        self.live: LiveCompanion | None = None
-        self.frames_left = 0
-        self.quality = quality
-        self._parser = mav.MAVLink(None)
-
-    def _decode(self, msg: Any) -> Any:
-        return mav.MAVLink(None).decode(bytearray(msg.pack(self.veh)))
-
-    def send_frame(self) -> None:
-        s = self.sim.current
-        rf = CFG.rangefinder
-        msgs = telemetry.frame_messages(self.veh, s, Profile.PAPER, CFG.flow_sensor.q_rad_per_count, T_S,
-                                        rf.min_m, rf.max_m)
-        if self.quality is not None:
-            msgs[2].quality = self.quality  # (gyro, range, then the flow)
-        if self.sim.frame % 25 == 0:
-            msgs.insert(0, telemetry.heartbeat(self.veh, armed=True))
-        self.inbox.extend(self._decode(m) for m in msgs)
-
-    def advance(self, cmd: tuple[float, float]) -> None:
-        self.sim.advance(*cmd)
-        self.clock += T_S
-        self.send_frame()
-
-    # what LiveCompanion uses of a connection
-    def recv_msg(self) -> Any | None:
-        return self.inbox.popleft() if self.inbox else None
-
-    def write(self, buf: bytes) -> None:
-        for m in self._parser.parse_buffer(buf) or []:
-            self.written.append((self.clock, m))
-            if m.get_type() == "SET_ATTITUDE_TARGET":
-                self.cmd = outbound.quaternion_to_euler(m.q)[:2]
-
-    def select(self, _timeout: float) -> None:
-        """Nothing waiting: the next frame period passes (the vehicle flies the last command)."""
-        assert self.live is not None
-        if self.frames_left <= 0:
-            self.live.stop_requested = True
-            return
-        self.frames_left -= 1
-        self.advance(self.cmd)
-
-    def close(self) -> None:
-        pass
-
-    def fly(self, n: int) -> None:
-        assert self.live is not None
-        self.frames_left = n
-        self.live.stop_requested = False
-        self.live.run()
-
-    def stall(self, seconds: float) -> None:
-        """The companion stops; the vehicle sends a frame each period and flies level."""
-        for _ in range(int(round(seconds / T_S))):
-            self.advance((0.0, 0.0))
-
-    def commands(self, since: int = 0) -> list[tuple[float, Any]]:
-        return [(t, m) for t, m in self.written[since:] if m.get_type() == "SET_ATTITUDE_TARGET"]
-
-    def texts(self, since: int = 0) -> list[tuple[str, int]]:
-        return [(m.text, m.severity) for _t, m in self.written[since:] if m.get_type() == "STATUSTEXT"]
+def _wind(_t_s: float) -> tuple[float, float]:
+    return (-WIND_N, WIND_N)
 
 
 @pytest.fixture
 def flying():
     """A companion in control for 3 s of the fake link, leaning into the wind."""
-    fl = FakeLink()
+    fl = FakeLink(CFG, external_force=_wind)
     console: list[str] = []
     live = LiveCompanion(CFG, Profile.PAPER, fl, clock=lambda: fl.clock, wall=lambda: 1.7e9 + fl.clock,
                          out=console.append, quiet=True)
@@ -254,7 +176,7 @@ def test_a_backlog_on_the_link_is_dropped_by_age(flying):
 
 
 def test_a_hold_over_a_second_is_the_pilots_cue():
-    fl = FakeLink()
+    fl = FakeLink(CFG, external_force=_wind)
     console: list[str] = []
     live = LiveCompanion(CFG, Profile.PAPER, fl, clock=lambda: fl.clock, wall=lambda: 1.7e9 + fl.clock,
                          out=console.append, quiet=True)
@@ -278,7 +200,7 @@ def test_a_hold_over_a_second_is_the_pilots_cue():
 def test_the_gcs_setpoints_stopping_is_said_when_the_ramp_begins():
     """Issue 18 "say it": a GCS setpoint not refreshed for ``setpoint_timeout_s`` (1 s) is held, then
     ramps to the constant setpoint; the ramp's start is said once (WARNING) and on the console."""
-    fl = FakeLink()
+    fl = FakeLink(CFG, external_force=_wind)
     console: list[str] = []
     live = LiveCompanion(CFG, Profile.PAPER, fl, clock=lambda: fl.clock, wall=lambda: 1.7e9 + fl.clock,
                          out=console.append, quiet=True)

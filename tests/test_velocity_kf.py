@@ -29,12 +29,12 @@ import dataclasses
 import gzip
 import math
 import struct
-from collections import deque
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from fake_link import FakeLink
 from pymavlink import mavutil
 from scipy.special import ndtr
 
@@ -638,58 +638,10 @@ def test_vision_speed_estimate_carries_the_variance_when_there_is_one():
     assert all(math.isnan(c) for c in m.covariance)  # eq. 15: unknown (NaN first)
 
 
-class _FakeLink:
-    """The reference simulator behind a fake connection on a fake clock (tests/test_stall.py's
-    harness, reduced): one frame per ``select``; the companion's messages are kept."""
-
-    def __init__(self, cfg) -> None:
-        self.cfg = cfg
-        self.clock = 100.0
-        self.mav = mav.MAVLink(None, srcSystem=1, srcComponent=outbound.COMPANION_COMPONENT)
-        self.veh = mav.MAVLink(None, srcSystem=1, srcComponent=1)
-        self.sim = Simulator(cfg)
-        self.inbox: deque[Any] = deque()
-        self.written: list[Any] = []
-        self.cmd = (0.0, 0.0)
-        self.frames_left = 0
-        self.live: LiveCompanion | None = None
-        self._parser = mav.MAVLink(None)
-
-    def send_frame(self) -> None:
-        rf = self.cfg.rangefinder
-        msgs = telemetry.frame_messages(self.veh, self.sim.current, Profile.PAPER, self.cfg.flow_sensor.q_rad_per_count,
-                                        self.cfg.flow_sensor.frame_period_s, rf.min_m, rf.max_m)
-        if self.sim.frame % 25 == 0:
-            msgs.insert(0, telemetry.heartbeat(self.veh, armed=True))
-        self.inbox.extend(mav.MAVLink(None).decode(bytearray(m.pack(self.veh))) for m in msgs)
-
-    def recv_msg(self) -> Any | None:
-        return self.inbox.popleft() if self.inbox else None
-
-    def write(self, buf: bytes) -> None:
-        for m in self._parser.parse_buffer(buf) or []:
-            self.written.append(m)
-            if m.get_type() == "SET_ATTITUDE_TARGET":
-                self.cmd = outbound.quaternion_to_euler(m.q)[:2]
-
-    def select(self, _timeout: float) -> None:
-        assert self.live is not None
-        if self.frames_left <= 0:
-            self.live.stop_requested = True
-            return
-        self.frames_left -= 1
-        self.sim.advance(*self.cmd)
-        self.clock += self.cfg.flow_sensor.frame_period_s
-        self.send_frame()
-
-    def close(self) -> None:
-        pass
-
-
 @pytest.mark.parametrize("estimator", ["kf", "eq15"])
 def test_the_live_companion_publishes_the_variance(paper_cfg, estimator):
     cfg = replace_section(paper_cfg, "companion", velocity_estimator=estimator)
-    fl = _FakeLink(cfg)
+    fl = FakeLink(cfg)
     live = LiveCompanion(cfg, Profile.PAPER, fl, clock=lambda: fl.clock, wall=lambda: 1.7e9 + fl.clock,
                          out=lambda _s: None, quiet=True)
     live.router.vehicle_sysid, live.vehicle_compid = 1, 1
@@ -697,7 +649,7 @@ def test_the_live_companion_publishes_the_variance(paper_cfg, estimator):
     fl.send_frame()
     fl.frames_left = 100
     live.run()
-    vse = [m for m in fl.written if m.get_type() == "VISION_SPEED_ESTIMATE"]
+    vse = [m for _t, m in fl.messages("VISION_SPEED_ESTIMATE")]
     assert len(vse) > 90
     cov = np.array([list(m.covariance) for m in vse])
     if estimator == "kf":
