@@ -25,6 +25,17 @@ lib = native.kernels()
 pytestmark = pytest.mark.skipif(lib is None, reason="no C compiler: the numpy path is the only one")
 
 
+def _damaged_flight_a(path: Path, *, seed: int, n: int, every: int, xor: int) -> Path:
+    """flight_a with ``n`` bytes damaged at random (seeded): a start-of-packet byte (0xFD) where
+    the position is not a multiple of ``every``, the byte XOR ``xor`` where it is."""
+    rng = np.random.default_rng(seed)
+    data = bytearray(gzip.decompress(FLIGHT_A.read_bytes()))
+    for pos in rng.choice(len(data), size=n, replace=False):
+        data[pos] = 0xFD if pos % every else data[pos] ^ xor
+    path.write_bytes(bytes(data))
+    return path
+
+
 def test_the_library_is_built_from_this_source():
     assert native.library_path().is_file()
     assert native.library_path().parent == native.cache_dir()
@@ -232,12 +243,7 @@ def test_scan_without_sse2_equals_the_sse2_scan(tmp_path):
     portable = ctypes.CDLL(str(so))
     native._declare(portable)
     portable.fh_init()
-    rng = np.random.default_rng(21)
-    data = bytearray(gzip.decompress(FLIGHT_A.read_bytes()))
-    for pos in rng.choice(len(data), size=200, replace=False):
-        data[pos] = 0xFD if pos % 3 else data[pos] ^ 0x40
-    path = tmp_path / "edited.tlog"
-    path.write_bytes(bytes(data))
+    path = _damaged_flight_a(tmp_path / "edited.tlog", seed=21, n=200, every=3, xor=0x40)
     buf, n = tr._load(path)
     runs = [tr._pass1_native(k, buf, n, tr._Progress(False, "")) for k in (lib, portable)]
     (good_a, other_a), (good_b, other_b) = runs
@@ -255,18 +261,13 @@ def test_reader_in_threads_equals_numpy_path(tmp_path, monkeypatch, n_threads):
     the numpy path's recording."""
     from companion import tlog_reader as tr
 
-    rng = np.random.default_rng(13)
-    data = bytearray(gzip.decompress(FLIGHT_A.read_bytes()))
-    for pos in rng.choice(len(data), size=60, replace=False):
-        data[pos] = 0xFD if pos % 2 else data[pos] ^ 0x10
-    path = tmp_path / "damaged.tlog"
-    path.write_bytes(bytes(data))
+    path = _damaged_flight_a(tmp_path / "damaged.tlog", seed=13, n=60, every=2, xor=0x10)
     monkeypatch.setattr(tr, "_SCAN_CHUNK", 1 << 16)
     monkeypatch.setattr(tr, "_PARALLEL_MIN_PACKETS", 0)
     monkeypatch.setattr(tr, "_PARALLEL_MIN_BYTES", 0)
     monkeypatch.setattr(native, "threads", lambda: n_threads)
     fast, slow = _both(path, monkeypatch)
-    assert fast.skipped_packets > 0 and len(data) > 40 * (1 << 16)
+    assert fast.skipped_packets > 0 and path.stat().st_size > 40 * (1 << 16)
     assert_same_recording(fast, slow)
 
 
