@@ -73,10 +73,9 @@ def gust_scaled(gust) -> Path:
     return _rewrite(gust, gust.with_name("gust_scaled.tlog"), scaled)
 
 
-@pytest.fixture(scope="module")
-def gust_stray(gust) -> Path:
-    """The gust flight with five OPTICAL_FLOW messages from another system (7) first, at the
-    recording's first record time: replay took the first flow sender as the vehicle."""
+def _with_strays(src: Path, dst: Path, encode: Any) -> Path:
+    """``src`` rewritten to ``dst`` with five messages from another system (7) first, at the
+    recording's first record time: ``encode(enc, k)`` makes the k-th."""
     enc = mav.MAVLink(None, srcSystem=7, srcComponent=1)
     first = [True]
 
@@ -84,11 +83,18 @@ def gust_stray(gust) -> Path:
         out = []
         if first[0]:
             first[0] = False
-            out = [(msg._timestamp, bytes(enc.optical_flow_encode(k, 0, 90, -90, 0.0, 0.0, 255, 1.0).pack(enc)))
-                   for k in range(5)]
+            out = [(msg._timestamp, bytes(encode(enc, k).pack(enc))) for k in range(5)]
         return out + _same(msg)
 
-    return _rewrite(gust, gust.with_name("gust_stray.tlog"), stray)
+    return _rewrite(src, dst, stray)
+
+
+@pytest.fixture(scope="module")
+def gust_stray(gust) -> Path:
+    """The gust flight with five OPTICAL_FLOW messages from another system (7) first, at the
+    recording's first record time: replay took the first flow sender as the vehicle."""
+    return _with_strays(gust, gust.with_name("gust_stray.tlog"),
+                        lambda enc, k: enc.optical_flow_encode(k, 0, 90, -90, 0.0, 0.0, 255, 1.0))
 
 
 @pytest.fixture(scope="module")
@@ -112,18 +118,8 @@ def gust_vehicle_target(gust) -> Path:
 def gust_scaled_stray_raw(gust_scaled) -> Path:
     """The SCALED_IMU gust flight with five RAW_IMU messages from another system (7) first: RAW_IMU
     comes first in the order of preference, but these are not the vehicle's gyro."""
-    enc = mav.MAVLink(None, srcSystem=7, srcComponent=1)
-    first = [True]
-
-    def stray(msg: Any) -> list[tuple[float, bytes]]:
-        out = []
-        if first[0]:
-            first[0] = False
-            out = [(msg._timestamp, bytes(enc.raw_imu_encode(k, 0, 0, -1000, 500, 500, 500, 0, 0, 0).pack(enc)))
-                   for k in range(5)]
-        return out + _same(msg)
-
-    return _rewrite(gust_scaled, gust_scaled.with_name("gust_scaled_stray_raw.tlog"), stray)
+    return _with_strays(gust_scaled, gust_scaled.with_name("gust_scaled_stray_raw.tlog"),
+                        lambda enc, k: enc.raw_imu_encode(k, 0, 0, -1000, 500, 500, 500, 0, 0, 0))
 
 
 #: the RAW_IMU samples (1-based) whose x gyro is set to its int16 limit in ``gust_clipped`` (8 s and 16 s)
