@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_diagnose.py [--minutes 60] [--out out/bench_diagnose]
 
 Flies (once; cached in ``--out``) a 150 s and a ``--minutes`` closed-loop varied flight
-(``simvehicle.flights``: steps, creeps, sinusoids, altitude changes, turbulence, sensor noise,
+(``simvehicle.engines.flights``: steps, creeps, sinusoids, altitude changes, turbulence, sensor noise,
 a gyro bias and a linear drag so there is something to find), then times, each in a fresh
 subprocess as a user runs them:
 
@@ -42,8 +42,8 @@ print(n, time.perf_counter() - t)
 
 def build(path: Path, duration_s: float, seed: int) -> Path:
     from companion.config import GyroBias, LinearDrag, load_config, with_effects
-    from simvehicle.flights import flight_plan, with_sensor_noise
-    from simvehicle.scenarios import fly
+    from simvehicle.engines.flights import flight_plan, with_sensor_noise
+    from simvehicle.engines.scenarios import fly
 
     if path.exists():
         return path

@@ -67,12 +67,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from companion import estimator  # noqa: E402
 from companion.config import load_config, replace_section  # noqa: E402
-from companion.core import EstimatorOptions, VelocityEstimator, kalman_settings  # noqa: E402
-from companion.profiles import Profile  # noqa: E402
-from companion.recording import Recording, load_recording  # noqa: E402
-from companion.replay import replay  # noqa: E402
+from companion.recordings.load import Recording, load_recording  # noqa: E402
+from companion.step import estimator  # noqa: E402
+from companion.step.core import EstimatorOptions, VelocityEstimator, kalman_settings  # noqa: E402
+from companion.step.profiles import Profile  # noqa: E402
+from companion.tools.replay import replay  # noqa: E402
 
 DATA = ROOT / "data" / "sitl" / "ardupilot"
 CONFIG = ROOT / "configs" / "ardupilot_sitl.toml"
@@ -460,7 +460,7 @@ def _misses(kr, kl, er, nees) -> str:
 
 def robustness(demo: Path | None) -> list[str]:
     """The filter on flights built otherwise than the tests' (docs/estimator.md)."""
-    from simvehicle.sim import Turbulence
+    from simvehicle.model.sim import Turbulence
 
     tv = _test_module()
     lines = ["random flights (seed 1), kf (eq. 15): RMS x, y (m/s); lag x, y (ms); kf error^2 / variance x, y"]

@@ -11,7 +11,7 @@ interpreter; its loop time (``loop_s``, opening excluded: the stricter ratio) an
 
 Against it, each in a fresh interpreter too:
 
-- ``read``: ``companion.recording.load_recording`` (``read_tlog`` for a .tlog), the first read
+- ``read``: ``companion.recordings.load.load_recording`` (``read_tlog`` for a .tlog), the first read
   (``cold_s``) and the best of three more (``warm_s``), with the imports timed apart;
 - ``replay``: the whole command ``python -m companion replay REC --csv OUT`` (start-up, reading,
   the steps, the CSV) and with ``--parquet OUT`` instead, best of ``repeat`` wall times;
@@ -173,8 +173,8 @@ def _baseline_once(rec: Recording, variant: str) -> dict[str, Any]:
 _READ = """
 import json, sys, time
 t0 = time.perf_counter()
-from companion.recording import load_recording
-import companion.tlog_reader
+from companion.recordings.load import load_recording
+import companion.recordings.tlog_reader
 t1 = time.perf_counter()
 runs, cpus = [], []
 for _ in range(int(sys.argv[2])):
@@ -244,11 +244,11 @@ import numpy
 t1 = time.perf_counter()
 from companion import native
 from companion.config import load_config
-from companion.csv_format import iter_rows
-from companion.info import format_summary, summarise
-from companion.profiles import Profile, detect_profile
-from companion.recording import load_recording
-from companion.replay import REPLAY_FIELDS, _csv_formats, replay, write_csv, write_parquet
+from companion.tools.csv_format import iter_rows
+from companion.tools.info import format_summary, summarise
+from companion.step.profiles import Profile, detect_profile
+from companion.recordings.load import load_recording
+from companion.tools.replay import REPLAY_FIELDS, _csv_formats, replay, write_csv, write_parquet
 t2 = time.perf_counter()
 cfg = load_config()
 rec = load_recording(sys.argv[1], fields=REPLAY_FIELDS)  # as replay's run_cli reads it
@@ -272,7 +272,7 @@ write_parquet(res, sys.argv[3])
 t6 = time.perf_counter()
 text = format_summary(summarise(rec))
 t7 = time.perf_counter()
-from companion.csv_format import format_rows, format_rows_reference
+from companion.tools.csv_format import format_rows, format_rows_reference
 t8 = time.perf_counter()
 fast = format_rows(cols, fmts)
 t9 = time.perf_counter()

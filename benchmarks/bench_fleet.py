@@ -11,7 +11,7 @@ reused) diagnosed by ``companion.fleet.run.run_fleet``:
 - on a Dask ``LocalCluster`` of each ``--workers`` count, each run into a fresh output folder.
 
 Sweep: ``--flights`` flights (the step and the gust over an altitude x Q grid; seeds make up the
-count) flown by ``simvehicle.sweep.run_sweep`` in-process and on the same clusters, with the
+count) flown by ``simvehicle.tools.sweep.run_sweep`` in-process and on the same clusters, with the
 default batches (about four tasks per worker) and with batches of ``--small-batch`` flights.
 
 Per run: wall time (cluster start included), the cluster's start-up alone (workers started and
@@ -47,7 +47,8 @@ for p in (str(ROOT), str(HERE)):
 from companion.fleet.engine import Engine  # noqa: E402
 from companion.fleet.run import run_fleet  # noqa: E402
 from companion.fleet.work import warm_up as fleet_warm_up  # noqa: E402
-from simvehicle import fastsim, sweep  # noqa: E402
+from simvehicle.engines import fastsim  # noqa: E402
+from simvehicle.tools import sweep  # noqa: E402
 
 RECORDING_VERSION = 1  # bump when the recordings change
 

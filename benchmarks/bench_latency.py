@@ -61,7 +61,7 @@ def flight_frames(n_frames: int, frame_s: float = 0.02) -> list[list[bytes]]:
     """Per frame, the vehicle's datagrams [RAW_IMU, DISTANCE_SENSOR, ATTITUDE, OPTICAL_FLOW],
     packed from a fast-engine flight so the companion sees realistic, changing data."""
     from companion.config import load_config
-    from simvehicle import fastsim
+    from simvehicle.engines import fastsim
 
     cfg = load_config()
     duration = n_frames * frame_s
@@ -244,7 +244,7 @@ def measure_latency(target: str = "live", frames: int = 2000, rate_hz: float = 5
 
 def _check_replies(replies: list[bytes]) -> int:
     """Decode every SET_ATTITUDE_TARGET received: finite, within 20 deg, thrust 0.5."""
-    from companion.outbound import quaternion_to_euler
+    from companion.mavlink.outbound import quaternion_to_euler
 
     parser = mav.MAVLink(None)
     n = 0
@@ -264,11 +264,11 @@ def _check_replies(replies: list[bytes]) -> int:
 
 def _serve_harness(url: str) -> int:
     """socket -> pymavlink -> MessageRouter -> outbound -> socket, until killed."""
-    from companion import outbound
     from companion.config import load_config
-    from companion.core import CompanionCore
-    from companion.inbound import MessageRouter
-    from companion.profiles import Profile
+    from companion.mavlink import outbound
+    from companion.mavlink.inbound import MessageRouter
+    from companion.step.core import CompanionCore
+    from companion.step.profiles import Profile
 
     host, port = url.split(":", 1)[1].rsplit(":", 1)
     cfg = load_config()
@@ -301,11 +301,11 @@ def profile_step(frames: int = 3000, top: int = 8) -> dict[str, Any]:
     """The step without sockets: decode a frame's messages, ``MessageRouter.handle`` them, encode
     the replies. Returns per-frame times (µs) of each part and cProfile's top functions by
     cumulative time of the control step."""
-    from companion import outbound
     from companion.config import load_config
-    from companion.core import CompanionCore
-    from companion.inbound import MessageRouter
-    from companion.profiles import Profile
+    from companion.mavlink import outbound
+    from companion.mavlink.inbound import MessageRouter
+    from companion.step.core import CompanionCore
+    from companion.step.profiles import Profile
 
     data = flight_frames(frames)
     core = CompanionCore(load_config(), Profile.PAPER)

@@ -4,7 +4,7 @@
 
 Builds a recording like a closed-loop flight (the vehicle's flow, IMU, range, attitude and
 truth streams, the companion's commands and estimates, heartbeats) and prints, in one run:
-pymavlink's ``recv_match`` loop and ``companion.tlog_reader.read_tlog`` in messages per second,
+pymavlink's ``recv_match`` loop and ``companion.recordings.tlog_reader.read_tlog`` in messages per second,
 their ratio, and the reader's peak memory against the file size. pymavlink is timed on the
 first ``--pymavlink-sample`` messages (default 200 000) and extrapolated, as the table says;
 ``--pymavlink-sample 0`` times the whole file. Each measurement runs in a fresh subprocess so
@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from companion.tlog_reader import layouts  # noqa: E402
+from companion.recordings.tlog_reader import layouts  # noqa: E402
 
 VEHICLE = (1, 1)
 COMPANION = (1, 191)
@@ -196,7 +196,7 @@ _READER_PROBE = """
 import json, resource, sys, time
 sys.path.insert(0, {root!r})
 import numpy, pymavlink.dialects.v20.ardupilotmega
-from companion.tlog_reader import read_tlog
+from companion.recordings.tlog_reader import read_tlog
 
 
 def peak_kib():

@@ -6,7 +6,7 @@ All flights fly ``fastsim.demanding_flight`` (velocity steps of up to 4 m/s that
 tilt limit, 4 N gusts), the companion's estimator and PI closing the loop. Speeds are simulated
 seconds per wall-clock second:
 
-- reference: ``simvehicle.sim.Simulator`` (RK4, 20 steps per 20 ms frame) driven by
+- reference: ``simvehicle.model.sim.Simulator`` (RK4, 20 steps per 20 ms frame) driven by
   ``CompanionCore`` (``fastsim.reference_run``), the baseline;
 - ``scenarios.fly``: the same, every message through MAVLink encoding and decoding;
 - fast engine, one flight: schedules as arrays, and as Python functions (evaluated at every
@@ -39,7 +39,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from companion.config import Config, load_config, replace_section  # noqa: E402
-from simvehicle import fastsim  # noqa: E402
+from simvehicle.engines import fastsim  # noqa: E402
 
 
 def _speed(sim_s: float, wall_s: float, **extra: Any) -> dict[str, Any]:
@@ -56,7 +56,7 @@ def measure_reference(duration_s: float = 30.0, cfg: Config | None = None) -> di
 
 
 def _scenario(duration_s: float) -> Any:
-    from simvehicle.scenarios import Scenario
+    from simvehicle.engines.scenarios import Scenario
 
     sched = fastsim.demanding_flight(duration_s)
     sp, fo, T = sched["setpoints"], sched["forces"], 0.02
@@ -67,7 +67,7 @@ def _scenario(duration_s: float) -> Any:
 
 def measure_fly(duration_s: float = 15.0, cfg: Config | None = None) -> dict[str, Any]:
     """``scenarios.fly``: the reference with every message through MAVLink."""
-    from simvehicle.scenarios import fly
+    from simvehicle.engines.scenarios import fly
 
     cfg = cfg or load_config()
     sc = _scenario(duration_s)
@@ -145,23 +145,23 @@ def measure_compile() -> dict[str, Any]:
 
 
 def write_flight_tlog(path: str | Path, duration_s: float, seed: int = 0) -> dict[str, Any]:
-    """A closed-loop recording of a varied flight (``simvehicle.flights``: steps, slow creeps,
+    """A closed-loop recording of a varied flight (``simvehicle.engines.flights``: steps, slow creeps,
     sinusoids, altitude changes, turbulence; sensor noise; linear drag b = 0.3 N s/m as a model
     mismatch to find), with the messages ``scenarios.fly`` writes, each frame's numbers from the
     fast engine through MAVLink quantization (what ``fly`` would record). Returns
     {"path", "frames", "messages", "bytes", "build_s"}."""
-    from companion import outbound
     from companion.config import LinearDrag, with_effects
-    from companion.profiles import Profile
-    from companion.tlog_writer import TlogWriter, mav_encoder
-    from simvehicle import telemetry
-    from simvehicle.scenarios import TLOG_EPOCH_S, VEHICLE_SYSID
-    from simvehicle.sim import FrameSample
+    from companion.mavlink import outbound
+    from companion.recordings.tlog_writer import TlogWriter, mav_encoder
+    from companion.step.profiles import Profile
+    from simvehicle.engines.scenarios import TLOG_EPOCH_S, VEHICLE_SYSID
+    from simvehicle.model import telemetry
+    from simvehicle.model.sim import FrameSample
 
     started = time.perf_counter()
     cfg = with_effects(load_config(), linear_drag=LinearDrag(0.3))
     try:
-        from simvehicle.flights import flight_plan, with_sensor_noise
+        from simvehicle.engines.flights import flight_plan, with_sensor_noise
 
         cfg = with_sensor_noise(cfg)
         sc = flight_plan(seed, duration_s).scenario()

@@ -283,7 +283,7 @@ def phases_notes(ph: dict[str, Any] | None) -> list[str]:
         f"writer {ph['format_numpy_s']:.2f} s ({per['numpy']:.0f} ns), the compiled writer "
         f"{ph['format_native_s']:.2f} s ({per['native']:.0f} ns), all three byte for byte the same." + numba +
         " The steps between the read and the CSV (alignment, gating, the plausibility screen, eq. 15, the PI) are "
-        "numpy over whole columns in `companion/core.py`, shared with the live loop's rules; they were not "
+        "numpy over whole columns in `companion/step/core.py`, shared with the live loop's rules; they were not "
         "rewritten here beyond an O(n) sliding extreme for the frozen-sensor screen (held equal to the window "
         "view it replaces) and the compiled sorted search (held equal to `numpy.searchsorted`). The replay and "
         "info commands load no numba, scipy or matplotlib (`tests/test_lazy_imports.py`)."]
@@ -476,7 +476,7 @@ def render(results: dict[str, Any]) -> str:
         "returns None, in a fresh interpreter, timed from the first `recv_match` (the opening, where "
         "`mavmmaplog` indexes the whole file, is shown apart and not counted: the stricter ratio). For a "
         "DataFlash log the same call gives `DFReader_binary`; for a ULog the baseline is `pyulog.ULog(path)`. "
-        "`read` is `companion.recording.load_recording` in process (the first read in a fresh interpreter, and "
+        "`read` is `companion.recordings.load.load_recording` in process (the first read in a fresh interpreter, and "
         "the best of three more); the commands are timed whole, as a user runs them: interpreter start-up, "
         "imports, reading, the work and the output file. CPU time is user + system time of the process (for the "
         "baseline, of its loop): the load of other jobs lengthens the wall time more than the CPU time." +

@@ -16,9 +16,9 @@ Sections (each against a baseline measured in the same run):
   a ULog), pymavlink's plain ``recv_match`` loop (DFReader for the .BIN, pyulog for the ULog)
   against ``load_recording`` in process and the whole ``replay`` (CSV, Parquet) and ``info``
   commands, and where the commands' time goes. Targets: read >= 150 x, commands >= 50 x on 60 min.
-- ``replay``: ``companion.replay.replay`` (columns) against ``replay_live`` (pymavlink message by
+- ``replay``: ``companion.tools.replay.replay`` (columns) against ``replay_live`` (pymavlink message by
   message through the live core) on a closed-loop recording.
-- ``diagnose``: ``companion.diagnose`` on closed-loop recordings of 150 s, 10 min and 60 min,
+- ``diagnose``: ``companion.diagnose.closed_loop.command`` on closed-loop recordings of 150 s, 10 min and 60 min,
   and the exponent of its cost against the length. Target: no worse than linear.
 - ``growth``: pymavlink's loop, read, and the whole replay, info and diagnose commands on
   generated flights of 1 min to 2 h (``bench_fair.growth``).
@@ -143,7 +143,7 @@ def section_latency(t: Table, quick: bool) -> None:
     frames = 500 if quick else 2000
     modes = (False, True) if bench_latency.realtime_available() else (False,)
     for target in ("live", "harness"):
-        if target == "live" and not _has_module("companion.live"):
+        if target == "live" and not _has_module("companion.mavlink.live"):
             t.add("latency", "python -m companion run", "not available")
             continue
         for rt in modes:
@@ -268,13 +268,13 @@ def _flight(workdir: Path, duration_s: float) -> Path:
 
 
 def section_replay(t: Table, quick: bool, workdir: Path) -> None:
-    if not _has_module("companion.replay"):
+    if not _has_module("companion.tools.replay"):
         t.add("replay", "replay vs pymavlink", "not available")
         return
     from companion.config import load_config
-    from companion.profiles import Profile
-    from companion.recording import load_recording
-    from companion.replay import replay, replay_live
+    from companion.recordings.load import load_recording
+    from companion.step.profiles import Profile
+    from companion.tools.replay import replay, replay_live
 
     cfg = load_config()
     dur = 60.0 if quick else 600.0
@@ -294,12 +294,12 @@ def section_replay(t: Table, quick: bool, workdir: Path) -> None:
 
 
 def section_diagnose(t: Table, quick: bool, workdir: Path, timeout_s: float) -> None:
-    if not _has_module("companion.diagnose"):
+    if not _has_module("companion.diagnose.closed_loop.command"):
         t.add("diagnose", "diagnose vs recording length", "not available")
         return
     lengths = (150.0, 600.0) if quick else (150.0, 600.0, 3600.0)
     probe = ("import json, sys, time\nt0 = time.perf_counter()\n"
-             "from companion.diagnose import diagnose_recording\nt1 = time.perf_counter()\n"
+             "from companion.diagnose.closed_loop.command import diagnose_recording\nt1 = time.perf_counter()\n"
              "d = diagnose_recording(sys.argv[1])\nt2 = time.perf_counter()\n"
              "print(json.dumps({'import_s': t1 - t0, 'diagnose_s': t2 - t1}))\n")
     times = []
@@ -396,7 +396,7 @@ def main(argv: list[str] | None = None) -> int:
             table.add(name, "error", f"{type(exc).__name__}: {exc}"[:120])
     import numpy
 
-    from simvehicle import fastsim
+    from simvehicle.engines import fastsim
 
     numba_version = fastsim._numba.__version__ if fastsim.NUMBA else "not used"  # type: ignore[union-attr]
     header = (f"flowhold benchmarks: {os.cpu_count()} cores, load average {load0:.1f} at start and "

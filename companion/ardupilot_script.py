@@ -5,7 +5,7 @@ runs on the autopilot, so it outlives the companion: while the vehicle is armed 
 and the companion's SET_ATTITUDE_TARGETs (component 191) stop for ``FHW_TIMEOUT`` seconds, it
 says so (STATUSTEXT CRITICAL) and switches to ``FHW_MODE`` (LAND by default). docs/ardupilot.md
 says how to install it and what it cannot cover. The simulated vehicle has the same behaviour as
-its ``FHW_*`` parameters (``simvehicle.server``), so the end-to-end tests can kill the companion.
+its ``FHW_*`` parameters (``simvehicle.server.server``), so the end-to-end tests can kill the companion.
 """
 
 from __future__ import annotations

@@ -64,7 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "configs/paper.toml)")
     replay.add_argument("--estimator", choices=("auto", "eq15", "tilt", "kf"), default=None,
                         help="the velocity the PI flies on: eq15 (the paper's), tilt (attitude-predicted two-state "
-                             "observer, companion.core.TiltFilter), kf (Kalman filter, flow sample's age compensated: "
+                             "observer, companion.step.core.TiltFilter), kf (Kalman filter, flow sample's age "
+                             "compensated: "
                              "docs/estimator.md), auto (kf for ardupilot and px4, eq15 for paper); default: the "
                              "config's companion.velocity_estimator (auto in configs/paper.toml)")
     replay.add_argument("--filter", choices=("none", "tilt"), default=None,
@@ -150,19 +151,19 @@ def _batch_process() -> None:
 
 def _dispatch(command: str) -> Callable[[argparse.Namespace], int]:
     if command == "run":
-        from companion.live import run_cli
+        from companion.mavlink.live import run_cli
     elif command == "replay":
         _batch_process()
-        from companion.replay import run_cli
+        from companion.tools.replay import run_cli
     elif command == "info":
         _batch_process()
-        from companion.info import run_cli
+        from companion.tools.info import run_cli
     elif command == "fleet":
         from companion.fleet.run import run_cli
     elif command == "ardupilot-script":
         from companion.ardupilot_script import run_cli
     else:
-        from companion.diagnose import run_cli
+        from companion.diagnose.closed_loop.command import run_cli
     return run_cli
 
 

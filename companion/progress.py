@@ -2,7 +2,7 @@
 
 A bar is drawn only when enabled (the commands enable it when stderr is a terminal, so pipes,
 logs and CI stay quiet) and only once the work has lasted ``DELAY_S``: a short file shows
-nothing. The .tlog reader has its own byte-level bar (``companion.tlog_reader``); this one
+nothing. The .tlog reader has its own byte-level bar (``companion.recordings.tlog_reader``); this one
 serves the importers (DataFlash, ULog, CSV), whose work comes in a few coarse stages.
 """
 

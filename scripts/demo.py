@@ -11,8 +11,8 @@ flight live from a ground station while it runs (MAVProxy ``--master=udpout:127.
 and acts as the ground station itself (a third MAVLink peer): it flies a 30 s profile on the
 vehicle's clock - hover, a step to 1.5 m/s forward and 0.5 m/s left at 2 s, hold (zero) from
 12 s, and a 4 N headwind injected by PARAM_SET SIM_WIND_FX = -4 at 18 s (Fig. 17's gust) - then
-stops both, reads the vehicle's recording (companion.recording.load_recording, via
-simvehicle.server.recording_run) and plots truth, estimate, setpoint, commands and flow counts.
+stops both, reads the vehicle's recording (companion.recordings.load.load_recording, via
+simvehicle.server.server.recording_run) and plots truth, estimate, setpoint, commands and flow counts.
 """
 
 from __future__ import annotations
@@ -31,10 +31,10 @@ sys.path.insert(0, str(REPO))
 
 from pymavlink import mavutil  # noqa: E402
 
-import companion.link  # noqa: E402 - MAVLink 2 for every connection opened below
-from companion.outbound import VELOCITY_TYPE_MASK  # noqa: E402
+import companion.mavlink.link  # noqa: E402 - MAVLink 2 for every connection opened below
+from companion.mavlink.outbound import VELOCITY_TYPE_MASK  # noqa: E402
 
-mav = companion.link.mav
+mav = companion.mavlink.link.mav
 DURATION_S = 30.0
 #: (from vehicle time s, setpoint vx, vy m/s): the profile the ground station flies
 PROFILE = ((0.0, 0.0, 0.0), (2.0, 1.5, -0.5), (12.0, 0.0, 0.0))
@@ -88,8 +88,10 @@ def _fly_ground_station(port: int, vehicle: subprocess.Popen) -> None:
     try:
         gcs.mav.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE)
         for name in ("RAW_IMU", "DISTANCE_SENSOR", "OPTICAL_FLOW", "ATTITUDE", "ATTITUDE_TARGET", "SYS_STATUS"):
-            gcs.mav.send(companion.link.set_message_interval(gcs.mav, 1, getattr(mav, f"MAVLINK_MSG_ID_{name}"), -1))
-        gcs.mav.send(companion.link.set_message_interval(gcs.mav, 1, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 0.1))
+            msg_id = getattr(mav, f"MAVLINK_MSG_ID_{name}")
+            gcs.mav.send(companion.mavlink.link.set_message_interval(gcs.mav, 1, msg_id, -1))
+        gcs.mav.send(companion.mavlink.link.set_message_interval(gcs.mav, 1, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+                                                                 0.1))
         gust_sent = False
         last = None
         deadline = time.monotonic() + WALL_LIMIT_S
@@ -167,8 +169,8 @@ def main() -> int:
 
     import numpy as np
 
-    from simvehicle.plots import plot_run
-    from simvehicle.server import recording_run
+    from simvehicle.server.server import recording_run
+    from simvehicle.tools.plots import plot_run
 
     run = recording_run(vtlog, name="MAVLink loop (lockstep)")
     plot_run(run, png, force=gust_force, title="make demo: the companion and the simulated vehicle over MAVLink "

@@ -2,9 +2,9 @@
 that undo the effect. Writes docs/refly_matrix.md (``--out`` to write elsewhere).
 
 Part 1, simulated flights with known effects. Each case is a varied 150 s flight
-(``simvehicle.flights.flight_plan``: steps, creeps, sinusoids, height changes, turbulence) flown by
+(``simvehicle.engines.flights.flight_plan``: steps, creeps, sinusoids, height changes, turbulence) flown by
 the in-process simulated vehicle with the companion, in the ``ardupilot`` profile, the effects set
-by PARAM_SET while it flies (``simvehicle.paramflight``: 1 s after take-off; a wind switched on and
+by PARAM_SET while it flies (``simvehicle.server.paramflight``: 1 s after take-off; a wind switched on and
 off). Then, as a user would:
 
 1. ``diagnose`` the recording with ``--model-out`` (the properties fitted on the first half);
@@ -40,13 +40,13 @@ from companion.config import (  # noqa: E402
     replace_section,
     with_effects,
 )
-from companion.diagnose import write_model_out  # noqa: E402
-from companion.diagnose.diagnosis import diagnose  # noqa: E402
-from companion.profiles import Profile  # noqa: E402
-from companion.recording import load_recording  # noqa: E402
-from simvehicle.flights import flight_plan, param_error_ratios, with_sensor_noise  # noqa: E402
-from simvehicle.paramflight import ParamChange, fly_with_params  # noqa: E402
-from simvehicle.refly import compare  # noqa: E402
+from companion.diagnose.closed_loop.command import write_model_out  # noqa: E402
+from companion.diagnose.closed_loop.diagnosis import diagnose  # noqa: E402
+from companion.recordings.load import load_recording  # noqa: E402
+from companion.step.profiles import Profile  # noqa: E402
+from simvehicle.engines.flights import flight_plan, param_error_ratios, with_sensor_noise  # noqa: E402
+from simvehicle.server.paramflight import ParamChange, fly_with_params  # noqa: E402
+from simvehicle.tools.refly import compare  # noqa: E402
 
 ON_S = 1.0  # the effects come on 1 s into the flight
 FIX_S = 0.5  # the suggested autopilot values are set before that
@@ -154,7 +154,7 @@ def render(cases: list[dict], sitl: list[dict]) -> str:
           "Each case: a varied 150 s flight (`flight_plan(seed)`, sensor noise on, turbulence as drawn), "
           "`ardupilot` profile, the effects set by PARAM_SET 1 s after the start (the wind from 50 s to "
           "100 s). *param / tol*: the largest |error| / tolerance of the written parameters (the finder's "
-          "tolerances, `simvehicle/flights.py`; <= 1 passes), for the whole-flight report and for the model "
+          "tolerances, `simvehicle/engines/flights.py`; <= 1 passes), for the whole-flight report and for the model "
           "file (first half). Commanded tilt: RMS of simulation minus recording on the held-out half, rad; "
           "*noise*: the noise width (refly.md); *true*: the simulation with the true effects.", "",
           "| case | truth | found | param / tol (report; model) | pitch_cmd nominal / fitted / true / noise | "

@@ -1,8 +1,8 @@
 """Repeated flights of one vehicle: do the finder's parameters agree within their uncertainties?
 
 One airframe, one sensor set and one noise model (drawn once), the same effects, and ``--n``
-flights of different profiles and noise draws (``simvehicle.flightgen``); each is diagnosed as a
-user would (``companion.diagnose``), and for every parameter found in at least two flights the
+flights of different profiles and noise draws (``simvehicle.engines.flightgen``); each is diagnosed as a
+user would (``companion.diagnose.closed_loop.command``), and for every parameter found in at least two flights the
 table gives the values, their stated 1-sigma uncertainties, the weighted mean and chi^2 per degree
 of freedom of the spread about it (about 1 when the uncertainties are honest; 4 means they are
 half what they should be).
@@ -25,9 +25,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from companion.config import load_config  # noqa: E402
-from companion.diagnose.diagnosis import diagnose  # noqa: E402
-from companion.recording import load_recording  # noqa: E402
-from simvehicle import flightgen as fg  # noqa: E402
+from companion.diagnose.closed_loop.diagnosis import diagnose  # noqa: E402
+from companion.recordings.load import load_recording  # noqa: E402
+from simvehicle.engines import flightgen as fg  # noqa: E402
 
 DEFAULT_EFFECTS = {"linear_drag": {"b": 0.4}, "gyro_bias": {"bias_x": 0.02, "bias_y": -0.015},
                    "flow_scale": {"scale_x": 1.1, "scale_y": 0.93}}

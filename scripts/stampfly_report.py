@@ -1,6 +1,6 @@
 """Regenerate the StampFly results in docs/stampfly.md (the part between the results markers).
 
-Runs the sensor-only diagnosis (``companion.sensor_diagnose``) on every CSV (``.csv`` or
+Runs the sensor-only diagnosis (``companion.diagnose.sensor.api``) on every CSV (``.csv`` or
 ``.csv.gz``) of the StampFly folder (default ``data/real/stampfly/``) with
 ``configs/sensors/stampfly.toml`` and the paper's Q (``configs/paper.toml``), writes one report
 folder per file (plot, report.md, mismatch JSON) under ``--plots``, pools the leg-based scales
@@ -22,12 +22,8 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 
 from companion.config import load_config  # noqa: E402
-from companion.recording import load_recording, recording_name, recording_stem, recording_suffix  # noqa: E402
-from companion.sensor_diagnose import (  # noqa: E402
-    SensorDiagnosis,
-    pool_scales,
-    run_sensor_diagnosis,
-)
+from companion.diagnose.sensor.api import SensorDiagnosis, pool_scales, run_sensor_diagnosis  # noqa: E402
+from companion.recordings.load import load_recording, recording_name, recording_stem, recording_suffix  # noqa: E402
 
 DATA = REPO / "data" / "real" / "stampfly"
 BEGIN = "<!-- stampfly-results:begin (scripts/stampfly_report.py rewrites this part) -->"

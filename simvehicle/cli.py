@@ -8,8 +8,8 @@ from collections.abc import Sequence
 
 from companion.config import load_config
 from companion.errors import check_output, run_command, writing
-from companion.profiles import Profile
-from simvehicle.scenarios import SCENARIOS, figures, run_named
+from companion.step.profiles import Profile
+from simvehicle.engines.scenarios import SCENARIOS, figures, run_named
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -94,7 +94,7 @@ def _scenario(args: argparse.Namespace) -> int:
         with writing("--json", args.json), open(args.json, "w") as fh:
             fh.write(text + "\n")
     if args.plot:
-        from simvehicle.plots import plot_run
+        from simvehicle.tools.plots import plot_run
 
         scenario = SCENARIOS.get(args.name)
         with writing("--plot", args.plot):
@@ -124,14 +124,14 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "scenario":
         return _scenario(args)
     if args.command == "serve":
-        from simvehicle.server import run_cli
+        from simvehicle.server.server import run_cli
 
         return int(run_cli(args))
     if args.command == "refly":
-        from simvehicle.refly import run_cli as refly_cli
+        from simvehicle.tools.refly import run_cli as refly_cli
 
         return int(refly_cli(args))
-    from simvehicle.sweep import run_cli as sweep_cli
+    from simvehicle.tools.sweep import run_cli as sweep_cli
 
     return int(sweep_cli(args))
 

@@ -1,6 +1,6 @@
 """A fake MAVLink connection for the live companion (``LiveCompanion``), driven by a fake clock.
 
-The reference simulator (``simvehicle.sim.Simulator``) is the vehicle. Each ``select`` is where time
+The reference simulator (``simvehicle.model.sim.Simulator``) is the vehicle. Each ``select`` is where time
 passes: one frame period, in which the vehicle flies the last command and sends its frame. Messages
 are read by ``recv_msg``, so a message arrives when it is read. What the companion writes is kept
 in ``written`` as (clock, message) pairs.
@@ -12,12 +12,12 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from companion import link, outbound
 from companion.config import Config
-from companion.live import LiveCompanion
-from companion.profiles import Profile
-from simvehicle import telemetry
-from simvehicle.sim import Simulator
+from companion.mavlink import link, outbound
+from companion.mavlink.live import LiveCompanion
+from companion.step.profiles import Profile
+from simvehicle.model import telemetry
+from simvehicle.model.sim import Simulator
 
 mav = link.mav
 

@@ -22,11 +22,11 @@ from typing import Any
 
 from pymavlink import mavutil
 
-import companion.link  # sets MAVLINK20 (MAVLink 2) before any connection picks its dialect
+import companion.mavlink.link  # sets MAVLINK20 (MAVLink 2) before any connection picks its dialect
 
 REPO = Path(__file__).resolve().parent.parent
 PY = sys.executable
-mav = companion.link.mav
+mav = companion.mavlink.link.mav
 
 #: generous: the machine may be shared and slow
 START_TIMEOUT_S = 60.0
@@ -148,7 +148,7 @@ class Gcs:
         self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=sysid,
                                                source_component=compid, dialect="ardupilotmega")
         if key is not None:
-            companion.link.setup_signing(self.conn.mav, key)
+            companion.mavlink.link.setup_signing(self.conn.mav, key)
         self.vehicle_time_s = -math.inf
         self.statustexts: list[tuple[float, int, int, str]] = []  # (vehicle time, sysid, compid, text)
         self.heartbeat()
@@ -231,7 +231,7 @@ class Gcs:
 
     def set_interval(self, msg_id: int, interval_s: float) -> Any:
         """SET_MESSAGE_INTERVAL to the vehicle; returns its COMMAND_ACK."""
-        self.conn.mav.send(companion.link.set_message_interval(self.conn.mav, 1, msg_id, interval_s))
+        self.conn.mav.send(companion.mavlink.link.set_message_interval(self.conn.mav, 1, msg_id, interval_s))
         return self.recv("COMMAND_ACK", cond=lambda m: m.command == mav.MAV_CMD_SET_MESSAGE_INTERVAL)
 
     def quiet(self, keep: dict[str, float] | None = None) -> None:
@@ -249,12 +249,12 @@ class Gcs:
         return self.recv("PARAM_VALUE", timeout_s=timeout_s, cond=lambda m: m.param_id == name)
 
     def command(self, command: int, *params: float, timeout_s: float = 10.0) -> Any:
-        self.conn.mav.send(companion.link.command_long(self.conn.mav, 1, 1, command, *params))
+        self.conn.mav.send(companion.mavlink.link.command_long(self.conn.mav, 1, 1, command, *params))
         return self.recv("COMMAND_ACK", timeout_s=timeout_s, cond=lambda m: m.command == command)
 
     def velocity(self, vx_m_s: float, vy_m_s: float, *, frame: int = mav.MAV_FRAME_BODY_FRD) -> None:
         """SET_POSITION_TARGET_LOCAL_NED (velocity only) to the companion (1, 191)."""
-        from companion.outbound import VELOCITY_TYPE_MASK
+        from companion.mavlink.outbound import VELOCITY_TYPE_MASK
 
         self.conn.mav.set_position_target_local_ned_send(0, 1, 191, frame, VELOCITY_TYPE_MASK, 0, 0, 0,
                                                          vx_m_s, vy_m_s, 0, 0, 0, 0, 0, 0)

@@ -15,13 +15,13 @@ import math
 import numpy as np
 import pytest
 
-from companion import link
 from companion.config import LinearDrag, WindForce, replace_section, with_effects
-from companion.importers.common import GRAVITY_M_S2
+from companion.mavlink import link
+from companion.recordings.importers.common import GRAVITY_M_S2
 from companion.rotation import euler_to_quaternion
-from simvehicle import telemetry
-from simvehicle.imu import accel_sample, specific_force
-from simvehicle.sim import Simulator
+from simvehicle.model import telemetry
+from simvehicle.model.imu import accel_sample, specific_force
+from simvehicle.model.sim import Simulator
 
 mav = link.mav
 

@@ -1,4 +1,4 @@
-"""What to set (issue 16): ``companion.advice.actions`` and ``diagnose --json``'s ``actions``.
+"""What to set (issue 16): ``companion.diagnose.advice.actions`` and ``diagnose --json``'s ``actions``.
 
 The autopilot mappings are checked against the autopilot's own arithmetic, written out here from
 its source (not from ``advice``): ArduPilot's flow backends multiply the sensor's X/Y flow rate by
@@ -7,7 +7,7 @@ its source (not from ``advice``): ArduPilot's flow backends multiply the sensor'
 ``_applyYaw``); PX4's VehicleOpticalFlow multiplies both axes by ``SENS_FLOW_SCALE`` and turns them
 with ``rotate_3f(SENS_FLOW_ROT)`` (``ROTATION_YAW_45``: x' = (x - y)/sqrt 2, y' = (x + y)/sqrt 2).
 A sensor with the finder's effects reads, in its own axes, the body scene angle turned by -yaw
-and divided by the scale (CONVENTIONS.md, simvehicle/flow_sensor.py).
+and divided by the scale (CONVENTIONS.md, simvehicle/model/flow_sensor.py).
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import math
 import numpy as np
 import pytest
 
-from companion.advice import actions, flow_scaler_permille, orient_yaw_cd, px4_flow_rot
-from companion.report import Action, Finding, Report
+from companion.diagnose.advice import actions, flow_scaler_permille, orient_yaw_cd, px4_flow_rot
+from companion.diagnose.report import Action, Finding, Report
 
 Q = 0.09 / 57.3
 
@@ -163,7 +163,7 @@ def test_actions_json_shape():
 
 
 def test_the_html_page_lists_the_autopilot_values(tmp_path):
-    from companion.report_html import render
+    from companion.diagnose.report_html import render
 
     rep = _report(_scale(1.1, 1.06), _yaw(math.radians(6.0)))
     rep.actions = actions(rep, profile="ardupilot", q_rad_per_count=Q)

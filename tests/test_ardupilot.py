@@ -18,14 +18,14 @@ import numpy as np
 import pytest
 
 from companion.config import replace_section
-from companion.convert import _records, convert_tlog
-from companion.core import EstimatorOptions, GyroSource, TiltFilter, VelocityEstimator
-from companion.outbound import quaternion_to_euler
-from companion.profiles import Profile, detect_profile
-from companion.recording import Recording, load_recording, read_recording_bytes
-from companion.replay import replay, replay_live
-from companion.tlog_writer import TlogWriter
-from simvehicle.scenarios import Scenario, fly
+from companion.mavlink.outbound import quaternion_to_euler
+from companion.recordings.load import Recording, load_recording, read_recording_bytes
+from companion.recordings.tlog_writer import TlogWriter
+from companion.step.core import EstimatorOptions, GyroSource, TiltFilter, VelocityEstimator
+from companion.step.profiles import Profile, detect_profile
+from companion.tools.convert import _records, convert_tlog
+from companion.tools.replay import replay, replay_live
+from simvehicle.engines.scenarios import Scenario, fly
 
 REPO = Path(__file__).resolve().parent.parent
 FLIGHT_A = REPO / "data" / "sitl" / "ardupilot" / "flight_a.tlog.gz"
@@ -257,8 +257,8 @@ def test_tilt_filter_leaves_the_closed_loop_step_response_alone(paper_cfg, monke
     no lag that the loop would feel)."""
     import functools
 
-    import simvehicle.scenarios as scenarios
-    from companion.core import CompanionCore
+    import simvehicle.engines.scenarios as scenarios
+    from companion.step.core import CompanionCore
 
     step = Scenario("step_short", 4.0, lambda t: (2.0, 2.0) if t >= 0.5 else (0.0, 0.0))
     figures = []

@@ -12,8 +12,8 @@ import time
 import pytest
 from loop_helpers import PY, REPO
 
-from companion import link
 from companion.errors import ExitCode, LinkError
+from companion.mavlink import link
 
 
 def _run(*argv: str, timeout_s: float = 60.0, **kwargs) -> tuple[subprocess.CompletedProcess, float]:

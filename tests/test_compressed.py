@@ -19,13 +19,11 @@ import numpy as np
 import pytest
 
 from companion.config import load_config
-from companion.convert import _records, convert_tlog
 from companion.errors import ExitCode, RecordingError
-from companion.importers.csv_columns import read_csv
-from companion.importers.dataflash import read_dataflash
-from companion.importers.ulog import read_ulog
-from companion.profiles import Profile
-from companion.recording import (
+from companion.recordings.importers.csv_columns import read_csv
+from companion.recordings.importers.dataflash import read_dataflash
+from companion.recordings.importers.ulog import read_ulog
+from companion.recordings.load import (
     Recording,
     load_recording,
     read_recording_bytes,
@@ -33,9 +31,11 @@ from companion.recording import (
     recording_stem,
     recording_suffix,
 )
-from companion.replay import replay, replay_live
-from companion.tlog_reader import read_tlog
-from companion.tlog_writer import TlogWriter
+from companion.recordings.tlog_reader import read_tlog
+from companion.recordings.tlog_writer import TlogWriter
+from companion.step.profiles import Profile
+from companion.tools.convert import _records, convert_tlog
+from companion.tools.replay import replay, replay_live
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = REPO / "data"

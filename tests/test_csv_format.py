@@ -1,6 +1,6 @@
 """The vectorised CSV writer is Python's ``%`` formatting, byte for byte (issue 17).
 
-``companion.csv_format.format_rows`` exists only for speed, compiled (companion/native/kernels.c)
+``companion.tools.csv_format.format_rows`` exists only for speed, compiled (companion/native/kernels.c)
 or in numpy; ``format_rows_reference`` (the ``%`` operator, value by value) is the rule. Each test
 runs on both. Held equal over random values of every magnitude, the edge cases of ``%g`` (ties,
 powers of ten and the values around them, the switch to exponents, zeros of both signs, NaN,
@@ -18,7 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.csv_format import format_rows, format_rows_reference
+from companion.tools.csv_format import format_rows, format_rows_reference
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -116,9 +116,9 @@ def test_any_float(values, fmt):
 def test_replay_csv_is_the_reference_text(tmp_path, flight_a_plain):
     """The whole replay of the SITL flight: the file written equals the ``%`` text of its columns."""
     from companion.config import load_config
-    from companion.profiles import Profile
-    from companion.replay import _csv_formats, replay, write_csv
-    from companion.tlog_reader import read_tlog
+    from companion.recordings.tlog_reader import read_tlog
+    from companion.step.profiles import Profile
+    from companion.tools.replay import _csv_formats, replay, write_csv
 
     res = replay(read_tlog(flight_a_plain), load_config(), Profile.ARDUPILOT)
     out = tmp_path / "r.csv"
@@ -131,9 +131,9 @@ def test_replay_csv_is_the_reference_text(tmp_path, flight_a_plain):
 def test_parquet_has_the_csv_columns(tmp_path, flight_a_plain):
     pq = pytest.importorskip("pyarrow.parquet")
     from companion.config import load_config
-    from companion.profiles import Profile
-    from companion.replay import replay, write_parquet
-    from companion.tlog_reader import read_tlog
+    from companion.recordings.tlog_reader import read_tlog
+    from companion.step.profiles import Profile
+    from companion.tools.replay import replay, write_parquet
 
     res = replay(read_tlog(flight_a_plain), load_config(), Profile.ARDUPILOT)
     names = write_parquet(res, tmp_path / "r.parquet")
@@ -180,7 +180,7 @@ def test_pieces_formatted_in_threads(threads):
     thread) are the reference text, in order; closing early stops the workers."""
     import threading
 
-    from companion.csv_format import iter_rows
+    from companion.tools.csv_format import iter_rows
 
     rng = np.random.default_rng(17)
     n = 5000

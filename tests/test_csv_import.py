@@ -1,4 +1,4 @@
-"""CSV importer driven by a column map (companion/importers/csv_columns.py).
+"""CSV importer driven by a column map (companion/recordings/importers/csv_columns.py).
 
 The imported tables are checked against an independent read of the same CSV with the ``csv``
 module and the unit/sign mapping written out here from the StampFly README (gyro rad/s ->
@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
+from companion.diagnose.sensor.api import find_read_grid
 from companion.errors import ConfigError, RecordingError
-from companion.estimator import velocity_from_flow
-from companion.importers.csv_columns import load_column_map, read_csv
-from companion.recording import load_recording
-from companion.sensor_diagnose import find_read_grid
+from companion.recordings.importers.csv_columns import load_column_map, read_csv
+from companion.recordings.load import load_recording
+from companion.step.estimator import velocity_from_flow
 
 REPO = Path(__file__).resolve().parent.parent
 STAMPFLY = REPO / "data" / "real" / "stampfly"

@@ -59,8 +59,8 @@ def test_loop_png_draws_both_setpoints_and_marks_the_gust_from_the_demos_own_pro
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from simvehicle.plots import force_steps, run_figure
-    from simvehicle.scenarios import _COLUMNS, Run
+    from simvehicle.engines.scenarios import _COLUMNS, Run
+    from simvehicle.tools.plots import force_steps, run_figure
 
     demo = _demo_module()
     t = np.arange(0.0, demo.DURATION_S, 0.02)

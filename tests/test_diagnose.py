@@ -21,17 +21,17 @@ from numpy.testing import assert_allclose
 from scipy.interpolate import CubicSpline
 from scipy.optimize import least_squares
 
-from companion import sensor_diagnose as sensor
 from companion.config import GyroBias, load_config, with_effects
-from companion.diagnose.attitude import AttitudeProblem, discretise, expm_discretise
-from companion.diagnose.channels import FlightData
-from companion.diagnose.flowmodel import IDX, NOMINAL, FlowProblem, ramp_integral
-from companion.diagnose.groups import GyroProblem
-from companion.diagnose.select import Candidate, Group, Selector, Settings
-from companion.diagnose.sparse import Term, sparse_fit, stlsq
-from companion.diagnose.wind import kernel_regressor, locate
-from simvehicle.flights import TOLERANCES, flight_plan, param_error_ratios, with_sensor_noise
-from simvehicle.scenarios import fly
+from companion.diagnose.closed_loop.attitude import AttitudeProblem, discretise, expm_discretise
+from companion.diagnose.closed_loop.channels import FlightData
+from companion.diagnose.closed_loop.flowmodel import IDX, NOMINAL, FlowProblem, ramp_integral
+from companion.diagnose.closed_loop.groups import GyroProblem
+from companion.diagnose.closed_loop.select import Candidate, Group, Selector, Settings
+from companion.diagnose.closed_loop.sparse import Term, sparse_fit, stlsq
+from companion.diagnose.closed_loop.wind import kernel_regressor, locate
+from companion.diagnose.sensor import api as sensor
+from simvehicle.engines.flights import TOLERANCES, flight_plan, param_error_ratios, with_sensor_noise
+from simvehicle.engines.scenarios import fly
 
 REPO = Path(__file__).resolve().parent.parent
 FLIGHT_A = REPO / "data" / "sitl" / "ardupilot" / "flight_a.tlog.gz"
@@ -433,7 +433,7 @@ def test_px4_profile_recording_is_read_in_the_papers_convention(tmp_path):
     """OPTICAL_FLOW_RAD (integrated radians) goes through the same channels: a planted flow delay
     is found within the issue's tolerance."""
     from companion.config import FlowDelay
-    from companion.profiles import Profile
+    from companion.step.profiles import Profile
 
     path = tmp_path / "px4.tlog"
     cfg = with_effects(with_sensor_noise(load_config()), flow_delay=FlowDelay(0.04))

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from companion.config import load_config
-from companion.diagnose.diagnosis import diagnose
-from companion.diagnose.select import Candidate, Group, Selector, Settings
-from companion.recording import load_recording
-from simvehicle.scenarios import SCENARIOS, fly
+from companion.diagnose.closed_loop.diagnosis import diagnose
+from companion.diagnose.closed_loop.select import Candidate, Group, Selector, Settings
+from companion.recordings.load import load_recording
+from simvehicle.engines.scenarios import SCENARIOS, fly
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -209,8 +209,8 @@ def test_the_demo_gust_is_found(tmp_path):
 def test_a_scaled_imu_gyro_is_read_by_its_own_time_field(gust_tlog):
     """SCALED_IMU (the contract accepts it) has time_boot_ms, not time_usec: the same flight with
     its gyro as SCALED_IMU gives the same gyro columns and the same finding."""
-    from companion.diagnose.channels import extract
-    from companion.recording import MessageTable
+    from companion.diagnose.closed_loop.channels import extract
+    from companion.recordings.load import MessageTable
 
     rec = load_recording(gust_tlog)
     raw = rec.tables.pop("RAW_IMU")
@@ -258,7 +258,7 @@ def test_arducopter_own_dataflash_log_is_diagnosed_at_its_logging_rates():
 def test_a_constant_force_row_gives_a_finite_wind_window():
     """A vehicle at rest on one axis: that axis' force residual is constant. The window's end
     uncertainties must still be numbers (a 0/0 correlation made them NaN, and a warning)."""
-    from companion.diagnose.wind import locate, null_pvalue
+    from companion.diagnose.closed_loop.wind import locate, null_pvalue
 
     t = np.arange(0.0, 60.0, 0.02)
     h = 5
@@ -274,12 +274,12 @@ def test_a_constant_force_row_gives_a_finite_wind_window():
 
 
 def test_a_wind_on_before_the_recording_starts_is_reported_from_the_first_frame(tmp_path):
-    """Flight 16 of the generalisation matrix (simvehicle.flightgen, its own seed): a 1.58 N wind
+    """Flight 16 of the generalisation matrix (simvehicle.engines.flightgen, its own seed): a 1.58 N wind
     already blowing when the recording starts, and a 0.5 s burst of lost telemetry at 1.8 s, so no
     force window can be formed before 3.1 s. The onset was never seen: the window is reported from
     the first frame (CONVENTIONS.md), its start uncertainty spanning the unseen stretch, and the
     force within the matrix's 20 %."""
-    from simvehicle.flightgen import generate
+    from simvehicle.engines.flightgen import generate
 
     g = generate(16, tmp_path, "gen16")
     wind = g.truth["effects"]["wind_force"]

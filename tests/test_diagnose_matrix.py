@@ -1,9 +1,9 @@
 """The diagnose test matrix of issue #5, as tests.
 
-Each case is flown closed loop by the reference simulator (``simvehicle.flights``: ~150 s of steps,
+Each case is flown closed loop by the reference simulator (``simvehicle.engines.flights``: ~150 s of steps,
 slow creeps, sinusoids on both axes, altitude changes, turbulence, gyro and range noise) and its
 recording diagnosed by ``python -m companion diagnose`` in a subprocess that sees only the .tlog.
-The issue's tolerances (``simvehicle.flights.TOLERANCES``) are asserted per case: every planted
+The issue's tolerances (``simvehicle.engines.flights.TOLERANCES``) are asserted per case: every planted
 effect named with its parameters within tolerance, nothing else named, and the held-out residual
 lower with each named effect than without.
 
@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 
-from simvehicle.flights import MATRIX, MatrixCase
+from simvehicle.engines.flights import MATRIX, MatrixCase
 
 REPO = Path(__file__).resolve().parent.parent
 SUBSET = ("clean-s2", "linear_drag-a", "flow_delay-a", "wind_force-b")

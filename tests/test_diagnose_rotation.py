@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.diagnose.channels import FlightData, gyro_spline
-from companion.diagnose.flowmodel import IDX, NOMINAL, FlowProblem
-from companion.diagnose.groups import regressor_scene_angle, rotation_angles
+from companion.diagnose.closed_loop.channels import FlightData, gyro_spline
+from companion.diagnose.closed_loop.flowmodel import IDX, NOMINAL, FlowProblem
+from companion.diagnose.closed_loop.groups import regressor_scene_angle, rotation_angles
 
 
 def _rotation_gain_error(angle: np.ndarray, truth: np.ndarray) -> float:
@@ -113,7 +113,7 @@ BURSTS = ((6.0, 6.0), (21.0, 1.0), (36.0, 4.0), (51.0, 1.0), (66.0, 5.0), (81.0,
 def _burst_selector(seed: int, k_true: float):
     """One channel, one linear effect whose regressor is non-zero only in the manoeuvres (what a
     scale or a lever arm looks like between hovers), unit white noise."""
-    from companion.diagnose.select import Candidate, Group, Selector, Settings
+    from companion.diagnose.closed_loop.select import Candidate, Group, Selector, Settings
 
     rng = np.random.default_rng(seed)
     t = np.arange(5000) * 0.02

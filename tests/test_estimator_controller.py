@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from companion.controller import PiController, PiState, pi_step
-from companion.core import CompanionCore, HoldCause
-from companion.estimator import VelocitySensor, velocity_from_flow
-from companion.profiles import FlowColumns
+from companion.step.controller import PiController, PiState, pi_step
+from companion.step.core import CompanionCore, HoldCause
+from companion.step.estimator import VelocitySensor, velocity_from_flow
+from companion.step.profiles import FlowColumns
 
 
 def test_eq15_against_hand_computation():

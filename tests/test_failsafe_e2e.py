@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from loop_helpers import Gcs, Procs
 
-from companion.outbound import quaternion_to_euler
-from companion.recording import load_recording
+from companion.mavlink.outbound import quaternion_to_euler
+from companion.recordings.load import load_recording
 
 WIND_N = 2.0
 LEAN_DEG = math.degrees(math.atan(WIND_N / (2.3 * 9.81)))  # 5.06 deg held against the wind
@@ -169,10 +169,10 @@ def test_lost_link_keeps_commanding_level_at_the_frame_rate(session):
 
 
 def test_garbage_and_nonsense_never_break_the_companion(tmp_path, paper_cfg):
-    from companion.link import mav as dialect
-    from companion.profiles import Profile
-    from simvehicle import telemetry
-    from simvehicle.sim import Simulator
+    from companion.mavlink.link import mav as dialect
+    from companion.step.profiles import Profile
+    from simvehicle.model import telemetry
+    from simvehicle.model.sim import Simulator
 
     rng = np.random.default_rng(7)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

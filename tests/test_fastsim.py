@@ -1,7 +1,7 @@
 """The fast engine against the fine-step reference, its closed forms, and the paper's figures.
 
-Reference = ``simvehicle.sim.Simulator`` (RK4, 20 steps per frame) closed by
-``companion.core.CompanionCore`` (``fastsim.reference_run``), or ``scenarios.fly`` through
+Reference = ``simvehicle.model.sim.Simulator`` (RK4, 20 steps per frame) closed by
+``companion.step.core.CompanionCore`` (``fastsim.reference_run``), or ``scenarios.fly`` through
 MAVLink. Tolerances: the issue's 1e-6 rad on the scene angle at frame times; the RK4
 reference itself is within ~1e-8 rad of the exact solution on these flights, so commands and
 counts agree exactly except at exact ties (a scene angle within 1e-7 rad of a count boundary).
@@ -20,10 +20,10 @@ import scipy.integrate
 import scipy.linalg
 
 from companion import config as C
-from companion.controller import PiState, pi_step
 from companion.errors import ConfigError
-from simvehicle import fastsim
-from simvehicle.scenarios import SCENARIOS, Scenario, figures, fly
+from companion.step.controller import PiState, pi_step
+from simvehicle.engines import fastsim
+from simvehicle.engines.scenarios import SCENARIOS, Scenario, figures, fly
 
 PHI_TOL_RAD = 1e-6  # the issue's bound on the frame-time scene angle
 TIE_RAD = 1e-7  # a count may differ only where the scene angle is this close to a count boundary
@@ -169,9 +169,9 @@ def test_the_kernels_step_is_the_companions_for_every_modelled_option(paper_cfg,
     for c in ("flow_x_counts", "flow_y_counts", "est_vx_m_s", "est_vy_m_s", "roll_cmd_rad", "pitch_cmd_rad",
               "hold", "vx_set_m_s", "vy_set_m_s", "range_m", "t_s"):
         np.testing.assert_array_equal(fast[c], ref[c], err_msg=c)
-    from companion.profiles import Profile
-    from companion.recording import load_recording
-    from companion.replay import replay
+    from companion.recordings.load import load_recording
+    from companion.step.profiles import Profile
+    from companion.tools.replay import replay
 
     causes = set(replay(load_recording(tmp_path / "fly.tlog"), cfg, Profile.PAPER)["hold_cause"].tolist())
     if name == "gates fire":

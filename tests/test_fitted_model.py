@@ -12,10 +12,17 @@ import numpy as np
 import pytest
 
 from companion.config import CONFIG_DIR, EFFECT_TYPES, load_config
+from companion.diagnose.fitted_model import (
+    MIN_SPLIT_S,
+    NOT_SIMULATED,
+    config_toml,
+    fitted_findings,
+    heldout_split_s,
+    model_toml,
+)
+from companion.diagnose.report import Finding, Report
 from companion.errors import ConfigError
-from companion.fitted_model import MIN_SPLIT_S, NOT_SIMULATED, config_toml, fitted_findings, heldout_split_s, model_toml
-from companion.report import Finding, Report
-from simvehicle.scenarios import SCENARIOS, fly
+from simvehicle.engines.scenarios import SCENARIOS, fly
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -71,7 +78,7 @@ def test_an_unknown_key_inside_an_effect_table_is_rejected(tmp_path, paper_cfg):
 
 
 def test_every_effect_the_finder_names_is_a_table_or_says_why_not():
-    from simvehicle.flightgen import EFFECT_NAMES  # CONVENTIONS.md's effect table, written independently
+    from simvehicle.engines.flightgen import EFFECT_NAMES  # CONVENTIONS.md's effect table, written independently
 
     assert not set(EFFECT_TYPES) & set(NOT_SIMULATED)
     assert set(EFFECT_TYPES) | set(NOT_SIMULATED) == set(EFFECT_NAMES)

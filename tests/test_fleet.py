@@ -1,6 +1,6 @@
 """``python -m companion fleet``: a fleet of generated recordings with known effects (two vehicles,
 some files damaged, one empty) on a Dask LocalCluster of 2 workers, against the truth of the
-generator (``simvehicle.flightgen.score``), the per-file reports, and the same fleet in-process.
+generator (``simvehicle.engines.flightgen.score``), the per-file reports, and the same fleet in-process.
 
 The flights share one airframe and nominal model (one ``--config``): vehicle A flies clean, then
 with its flow sensor's scale moved to 1.15 (the drift the fleet must flag); vehicle B has a gyro
@@ -28,7 +28,7 @@ from companion.fleet import engine as eng
 from companion.fleet import run as fleet_run
 from companion.fleet.run import find_recordings, run_fleet
 from companion.fleet.table import OUTLIER_SIGMA, flag_outliers, read_parquet
-from simvehicle import flightgen as fg
+from simvehicle.engines import flightgen as fg
 
 pytest.importorskip("distributed")
 

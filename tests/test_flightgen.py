@@ -1,4 +1,4 @@
-"""The independent flight generator (simvehicle/flightgen.py) and the matrix scorer.
+"""The independent flight generator (simvehicle/engines/flightgen.py) and the matrix scorer.
 
 Signs and units per CONVENTIONS.md are checked against closed forms (a pure rotation's flow is the
 rotation, a steady tilt gives v_dot = g tan, translation gives -v/A, a lever arm's flow, a first-order
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simvehicle import flightgen as fg
+from simvehicle.engines import flightgen as fg
 
 ROOT = Path(__file__).resolve().parent.parent
 KT = np.array([0.0, 1000.0])

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from companion.core import REPEAT_WINDOW_FRAMES, repeat_mask, repeat_window
-from companion.profiles import Profile
+from companion.step.core import REPEAT_WINDOW_FRAMES, repeat_mask, repeat_window
+from companion.step.profiles import Profile
 
 
 def _frozen(n_new: int, n_frozen: int, t_frame_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -37,8 +37,8 @@ def test_paper_profile_keeps_the_frame_window():
 
 def test_live_core_and_replay_rule_agree_on_a_frozen_ardupilot_flow(paper_cfg):
     """The live core (``CompanionCore._is_repeat``) flags the same messages as the column rule."""
-    from companion.core import CompanionCore
-    from companion.profiles import FlowColumns
+    from companion.step.core import CompanionCore
+    from companion.step.profiles import FlowColumns
 
     t, rates = _frozen(10, 25, 0.02)
     core = CompanionCore(paper_cfg, Profile.ARDUPILOT)

@@ -29,19 +29,19 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from companion import link, outbound
 from companion.config import Config, load_config
-from companion.core import CompanionCore, Plausibility, PlausibilityParams
 from companion.errors import RecordingError
-from companion.info import summarise
-from companion.live import LiveCompanion
-from companion.profiles import FlowColumns, Profile
-from companion.replay import replay
-from companion.tlog_reader import read_tlog
-from simvehicle import telemetry
-from simvehicle.scenarios import Scenario, fly
-from simvehicle.server import StreamSchedule, Vehicle
-from simvehicle.sim import Simulator
+from companion.mavlink import link, outbound
+from companion.mavlink.live import LiveCompanion
+from companion.recordings.tlog_reader import read_tlog
+from companion.step.core import CompanionCore, Plausibility, PlausibilityParams
+from companion.step.profiles import FlowColumns, Profile
+from companion.tools.info import summarise
+from companion.tools.replay import replay
+from simvehicle.engines.scenarios import Scenario, fly
+from simvehicle.model import telemetry
+from simvehicle.model.sim import Simulator
+from simvehicle.server.server import StreamSchedule, Vehicle
 
 mav = link.mav
 CFG = load_config()

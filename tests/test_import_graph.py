@@ -26,12 +26,13 @@ LAZY: dict[tuple[str, str], str] = {
     ("companion.cli", "_dispatch"): "each subcommand loads only its own code: diagnose scipy, fleet dask, "
                                     "run pymavlink's link; --help and usage errors load none of it",
     ("simvehicle.cli", "_dispatch"): "serve loads the link and sockets, sweep numba and dask: each only for itself",
-    ("simvehicle.cli", "_scenario"): "simvehicle.plots loads matplotlib, only for --plot",
-    ("companion.replay", "run_cli"): "companion.replay_plot loads matplotlib, only for --plot "
-                                     "(tests/test_lazy_imports.py)",
-    ("companion.recording", "load_recording"): "each reader only for its format: the .tlog reader loads pymavlink's "
-                                               "dialect and the native kernels (about 40 ms), the importers about 30 "
-                                               "ms more; replay and info are measured against the read (issue 17)",
+    ("simvehicle.cli", "_scenario"): "simvehicle.tools.plots loads matplotlib, only for --plot",
+    ("companion.tools.replay", "run_cli"): "companion.tools.plot loads matplotlib, only for --plot "
+                                           "(tests/test_lazy_imports.py)",
+    ("companion.recordings.load", "load_recording"): "each reader only for its format: the .tlog reader loads "
+                                                     "pymavlink's dialect and the native kernels (about 40 ms), the "
+                                                     "importers about 30 ms more; replay and info are measured "
+                                                     "against the read (issue 17)",
 }
 
 
@@ -151,10 +152,11 @@ def test_cycle_finder_finds_a_cycle_and_only_cycles():
 
 def test_the_graph_sees_module_and_function_level_imports(graph):
     mods, imps = graph
-    assert {"companion.recording", "companion.columnar", "companion.importers.ulog", "simvehicle.server"} <= set(mods)
+    assert {"companion.recordings.load", "companion.recordings.columnar", "companion.recordings.importers.ulog",
+            "simvehicle.server.server"} <= set(mods)
     pairs = {(i.source, i.target, i.function) for i in imps}
-    assert ("companion.importers.ulog", "companion.importers.common", None) in pairs
-    assert ("companion.recording", "companion.tlog_reader", "load_recording") in pairs
+    assert ("companion.recordings.importers.ulog", "companion.recordings.importers.common", None) in pairs
+    assert ("companion.recordings.load", "companion.recordings.tlog_reader", "load_recording") in pairs
 
 
 def test_no_import_cycle(graph):
@@ -178,3 +180,95 @@ def test_every_lazy_entry_is_still_used(graph):
     _, imps = graph
     used = {(i.source, i.function) for i in imps if i.function is not None}
     assert set(LAZY) <= used, f"stale LAZY entries: {sorted(set(LAZY) - used)}"
+
+
+#: the layers of docs/layout.md, lowest first: a module may import its own layer and those below,
+#: never one above (``companion`` and ``simvehicle`` themselves hold only a docstring). Every
+#: first-party module belongs to exactly one layer (``test_every_module_has_one_layer``).
+LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("base", ("companion", "companion.errors", "companion.progress", "companion.config", "companion.mavlink_ids",
+              "companion.rotation", "companion.native", "simvehicle")),
+    ("the step", ("companion.step",)),
+    ("recordings", ("companion.recordings",)),
+    ("the MAVLink side", ("companion.mavlink",)),
+    ("tools over recordings", ("companion.tools",)),
+    ("analysis", ("companion.diagnose",)),
+    ("fleet", ("companion.fleet",)),
+    ("the simulated vehicle's models", ("simvehicle.model",)),
+    ("the simulator's engines", ("simvehicle.engines",)),
+    ("the simulator's server", ("simvehicle.server",)),
+    ("the simulator's tools", ("simvehicle.tools",)),
+    ("entry points", ("companion.cli", "companion.__main__", "companion.ardupilot_script", "simvehicle.cli",
+                      "simvehicle.__main__")),
+    ("old paths, one-line re-exports to remove in the next release",
+     ("companion.replay", "companion.recording", "simvehicle.sim")),
+)
+
+#: (importer, imported) -> why this import from a lower layer into a higher one is allowed
+UPWARD: dict[tuple[str, str], str] = {
+    ("companion.step.profiles", "companion.recordings.load"): "detect_profile reads a Recording's messages (the "
+                                                             "form's type, no reader)",
+    ("companion.step.profiles", "companion.recordings.importers.common"): "GRAVITY_M_S2, the one value of g the "
+                                                                         "accelerometer units are built from",
+}
+
+
+def layer_of(module: str) -> int | None:
+    """The index in ``LAYERS`` of the longest prefix that names ``module`` or one of its packages."""
+    best: tuple[int, int] | None = None
+    for k, (_, prefixes) in enumerate(LAYERS):
+        for p in prefixes:
+            if (module == p or module.startswith(p + ".")) and (best is None or len(p) > best[0]):
+                best = (len(p), k)
+    return None if best is None else best[1]
+
+
+def upward(imps: list[Import]) -> list[str]:
+    """Every import (module level or inside a function) from a lower layer into a higher one that
+    ``UPWARD`` does not justify."""
+    out = []
+    for i in imps:
+        src, tgt = layer_of(i.source), layer_of(i.target)
+        if src is not None and tgt is not None and tgt > src and (i.source, i.target) not in UPWARD:
+            out.append(f"{i.source}:{i.line} ({LAYERS[src][0]}) imports {i.target} ({LAYERS[tgt][0]})")
+    return out
+
+
+def test_the_layer_check_fails_an_import_into_a_higher_layer():
+    down = Import("companion.tools.replay", "companion.step.core", 1, None)
+    up = Import("companion.step.core", "companion.tools.replay", 2, None)
+    lazy_up = Import("companion.recordings.load", "companion.diagnose.report", 3, "load_recording")
+    assert upward([down]) == []
+    assert upward([up]) == ["companion.step.core:2 (the step) imports companion.tools.replay (tools over recordings)"]
+    assert len(upward([lazy_up])) == 1  # inside a function too
+    assert layer_of("companion.diagnose.sensor.band") == layer_of("companion.diagnose.report")
+    assert layer_of("companion.replay") != layer_of("companion.tools.replay")  # the longest prefix decides
+
+
+def test_every_module_has_one_layer(graph):
+    mods, _ = graph
+    assert [m for m in mods if layer_of(m) is None] == []
+
+
+def test_no_import_from_a_lower_layer_into_a_higher_one(graph):
+    _, imps = graph
+    found = upward(imps)
+    assert not found, "imports into a higher layer (docs/layout.md): " + "; ".join(found)
+
+
+def test_every_upward_exception_is_still_used(graph):
+    _, imps = graph
+    used = {(i.source, i.target) for i in imps}
+    assert set(UPWARD) <= used, f"stale UPWARD entries: {sorted(set(UPWARD) - used)}"
+
+
+def test_every_package_init_imports_nothing(graph):
+    """Importing one module never loads a sibling it does not use: each ``__init__.py`` holds a
+    docstring and no import (``from __future__`` aside)."""
+    mods, _ = graph
+    for module, path in mods.items():
+        if path.name == "__init__.py":
+            tree = ast.parse(path.read_text(encoding="utf-8"))
+            imported = [n for n in ast.walk(tree) if isinstance(n, ast.Import | ast.ImportFrom)
+                        and not (isinstance(n, ast.ImportFrom) and n.module == "__future__")]
+            assert not imported, module

@@ -20,12 +20,12 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from companion.errors import RecordingError
-from companion.estimator import scene_rate, velocity_from_flow
-from companion.importers.dataflash import read_dataflash
-from companion.importers.ulog import read_ulog
-from companion.profiles import Profile, flow_columns
-from companion.recording import Recording, load_recording
+from companion.recordings.importers.dataflash import read_dataflash
+from companion.recordings.importers.ulog import read_ulog
+from companion.recordings.load import Recording, load_recording
 from companion.rotation import euler_to_quaternions, quaternions_to_euler
+from companion.step.estimator import scene_rate, velocity_from_flow
+from companion.step.profiles import Profile, flow_columns
 
 DATA = Path(__file__).parent / "data" / "importers"
 BIN = DATA / "copter_flow.bin"

@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import companion.profiles
+import companion.step.profiles
 from companion.cli import main
 from companion.errors import RecordingError
-from companion.info import format_summary, run_cli, stream_timing, summarise
-from companion.recording import Recording
-from companion.tlog_reader import read_tlog
-from companion.tlog_writer import TlogWriter, mav_encoder
+from companion.recordings.load import Recording
+from companion.recordings.tlog_reader import read_tlog
+from companion.recordings.tlog_writer import TlogWriter, mav_encoder
+from companion.tools.info import format_summary, run_cli, stream_timing, summarise
 
 T0 = 1_750_000_000.0
 FLOW_HZ = 50.0
@@ -65,7 +65,7 @@ def flight(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture()
 def fixed_profile(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(companion.profiles, "detect_profile", lambda rec: ("paper", "stub for the test"))
+    monkeypatch.setattr(companion.step.profiles, "detect_profile", lambda rec: ("paper", "stub for the test"))
 
 
 def _message(summary: dict, name: str) -> dict:
@@ -138,9 +138,9 @@ def test_missing_sensors_are_listed(tmp_path, fixed_profile):
 
 
 def test_profile_comes_from_detect_profile(flight):
-    """Whatever companion.profiles says, info reports (here: the real detector)."""
+    """Whatever companion.step.profiles says, info reports (here: the real detector)."""
     rec = read_tlog(flight)
-    name, reason = companion.profiles.detect_profile(rec)
+    name, reason = companion.step.profiles.detect_profile(rec)
     s = summarise(rec)
     assert s["profile"] == {"name": str(name), "reason": str(reason)}
     assert f"profile: {name} ({reason})" in format_summary(s)
@@ -194,8 +194,8 @@ def test_recording_clock_tells_simulated_from_wall_stamps(tmp_path):
     whose clock stamped the records: the simulated vehicle's STATUSTEXT; stamps that advance exactly
     as the vehicle's time field (a simulator's log); a link's jittery arrivals (wall clock); and wall
     stamps of a simulation that ran faster than real time."""
-    from companion.info import recording_clock
-    from companion.tlog_writer import SIM_EPOCH_S
+    from companion.recordings.tlog_writer import SIM_EPOCH_S
+    from companion.tools.info import recording_clock
 
     rng = np.random.default_rng(1)
     boot = np.arange(0, 10.0, 0.02)

@@ -17,13 +17,13 @@ from test_replay import SHORT_STEP
 from test_tlog_reader import build_all_types
 
 from companion import native
-from companion import tlog_reader as tr
-from companion.columnar import LazyColumns, MessageTable
-from companion.core import EstimatorOptions, GyroSource, VelocityEstimator
-from companion.profiles import Profile
-from companion.recording import load_recording
-from companion.replay import REPLAY_FIELDS, replay
-from simvehicle.scenarios import fly
+from companion.recordings import tlog_reader as tr
+from companion.recordings.columnar import LazyColumns, MessageTable
+from companion.recordings.load import load_recording
+from companion.step.core import EstimatorOptions, GyroSource, VelocityEstimator
+from companion.step.profiles import Profile
+from companion.tools.replay import REPLAY_FIELDS, replay
+from simvehicle.engines.scenarios import fly
 
 pytestmark = pytest.mark.skipif(native.kernels() is None, reason="lazy fields come with the compiled kernels")
 

@@ -23,10 +23,10 @@ import numpy as np
 import pytest
 from loop_helpers import PY, REPO, Gcs, Procs, free_udp_port, mav
 
-from companion.outbound import euler_to_quaternion, quaternion_to_euler
-from companion.profiles import Profile
-from simvehicle.scenarios import SCENARIOS, figures, fly
-from simvehicle.server import recording_run
+from companion.mavlink.outbound import euler_to_quaternion, quaternion_to_euler
+from companion.step.profiles import Profile
+from simvehicle.engines.scenarios import SCENARIOS, figures, fly
+from simvehicle.server.server import recording_run
 
 #: one float32 rounding of values up to ~30 m (truth travels in float32 fields)
 F32_POS_TOL_M = 4e-6
@@ -102,9 +102,9 @@ def test_lockstep_recordings_are_stamped_with_simulated_time(step_loop):
     flow at 1590 Hz). Both recordings now carry simulated time from SIM_EPOCH_S, as a SITL's log
     does: a vehicle message has the same stamp in both (its time field + the epoch), and ``info``
     says the clock is simulated (the vehicle's STATUSTEXT, which both recordings keep)."""
-    from companion.info import summarise
-    from companion.recording import load_recording
-    from companion.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S
+    from companion.recordings.load import load_recording
+    from companion.recordings.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S
+    from companion.tools.info import summarise
 
     vt, ct, _vlog, _clog = step_loop
     for path in (vt, ct):
@@ -244,9 +244,9 @@ def test_real_time_speedup_paces_the_vehicle(tmp_path):
     assert vx == pytest.approx(0.8, abs=0.04 * 0.8 + 0.01)
     assert vy == pytest.approx(-0.4, abs=0.04 * 0.4 + 0.01)
     # sped up: both recordings in simulated time (issue 14), a vehicle message stamped alike in both
-    from companion.info import summarise
-    from companion.recording import load_recording
-    from companion.tlog_writer import SIM_EPOCH_S
+    from companion.recordings.load import load_recording
+    from companion.recordings.tlog_writer import SIM_EPOCH_S
+    from companion.tools.info import summarise
 
     for path in (vt, ct):
         rec = load_recording(path)
@@ -369,7 +369,7 @@ def test_packets_are_routed_between_peers(vehicle_port):
 def test_signed_vehicle_serves_only_signed_peers(tmp_path):
     """MAVLink 2 signing: a GCS and a companion with the passphrase are served (the companion
     arms it), one without is not."""
-    from companion.link import signing_key
+    from companion.mavlink.link import signing_key
 
     words = "correct horse battery staple"
     with Procs(tmp_path) as procs:
@@ -405,8 +405,8 @@ def test_companion_gives_up_on_a_silent_link_in_one_line():
     """No vehicle: LinkError naming the URL after the connect timeout (library level, 0.3 s)."""
     from companion.config import load_config
     from companion.errors import LinkError
-    from companion.link import open_connection
-    from companion.live import LiveCompanion
+    from companion.mavlink.link import open_connection
+    from companion.mavlink.live import LiveCompanion
 
     url = f"udpout:127.0.0.1:{free_udp_port()}"
     conn = open_connection(url, source_system=1, source_component=191)
@@ -468,8 +468,8 @@ def test_companion_detects_the_vehicles_profile_before_taking_control(tmp_path, 
 def test_gcs_setpoint_is_held_then_ramps_to_the_constant_one(tmp_path, paper_cfg):
     """A GCS setpoint that stops arriving: held for companion.setpoint_timeout_s (1 s), then a
     linear ramp back to --setpoint over another second (decayed_setpoint), on the wall clock."""
-    from companion.live import decayed_setpoint
-    from companion.recording import load_recording
+    from companion.mavlink.live import decayed_setpoint
+    from companion.recordings.load import load_recording
 
     ct = tmp_path / "companion.tlog"
     timeout = paper_cfg.companion.setpoint_timeout_s
@@ -507,9 +507,9 @@ def test_record_stamps_follow_a_simulated_vehicles_clock(tmp_path):
     """The companion's recording: the wall clock until a simulated vehicle says otherwise; then its
     time fields + SIM_EPOCH_S (what waited in memory too), carried on across a reboot, on the
     wall clock's rate once the vehicle's clock stands still, never back in time."""
-    from companion.live import RecordStamps
-    from companion.recording import load_recording
-    from companion.tlog_writer import SIM_EPOCH_S, TlogWriter
+    from companion.mavlink.live import RecordStamps
+    from companion.recordings.load import load_recording
+    from companion.recordings.tlog_writer import SIM_EPOCH_S, TlogWriter
 
     enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
     parse = mav.MAVLink(None)
@@ -552,7 +552,7 @@ def test_record_stamps_follow_a_simulated_vehicles_clock(tmp_path):
 
 
 def test_decayed_setpoint_closed_form():
-    from companion.live import decayed_setpoint
+    from companion.mavlink.live import decayed_setpoint
 
     sp, base = (2.0, -1.0), (0.5, 0.0)
     assert decayed_setpoint(sp, base, 0.3, 1.0) == sp
@@ -563,8 +563,8 @@ def test_decayed_setpoint_closed_form():
 
 
 def test_frame_order_safe_attitude_and_hold_texts():
-    from companion.core import HoldCause
-    from companion.live import FrameOrder, HoldMonitor, classify_frame, parse_setpoint, safe_attitude
+    from companion.mavlink.live import FrameOrder, HoldMonitor, classify_frame, parse_setpoint, safe_attitude
+    from companion.step.core import HoldCause
 
     assert classify_frame(None, 3.0) is FrameOrder.NEW
     assert classify_frame(3.0, 3.02) is FrameOrder.NEW
@@ -591,7 +591,7 @@ def test_frame_order_safe_attitude_and_hold_texts():
 
 
 def test_text_limiter_holds_back_a_flapping_cause_and_ends_with_the_current_state():
-    from companion.live import STATUSTEXT_LEN, TextLimiter
+    from companion.mavlink.live import STATUSTEXT_LEN, TextLimiter
 
     lim = TextLimiter(repeat_s=1.0, burst=4, rate_hz=2.0)
     hold, ok = "flowhold: HOLD flow quality 0", "flowhold: resumed"
@@ -647,8 +647,8 @@ def test_companion_announces_control_holds_and_release_to_the_gcs(tmp_path):
 
 
 def test_stream_schedule_and_faults_are_pure(paper_cfg):
-    from simvehicle.server import FlowFault, GyroFault, RangeFault, StreamSchedule, faulted_sensors
-    from simvehicle.sim import Simulator
+    from simvehicle.model.sim import Simulator
+    from simvehicle.server.server import FlowFault, GyroFault, RangeFault, StreamSchedule, faulted_sensors
 
     sched = StreamSchedule(0.02)
     assert [sched.due(30, k) for k in range(3)] == [True, True, True]  # default: every frame (50 Hz)
@@ -669,7 +669,7 @@ def test_stream_schedule_and_faults_are_pure(paper_cfg):
 
 
 def test_every_vehicle_parameter_is_documented(paper_cfg):
-    from simvehicle.server import param_specs
+    from simvehicle.server.server import param_specs
 
     doc = (REPO / "docs" / "loop.md").read_text()
     for p in param_specs(paper_cfg):
@@ -678,7 +678,7 @@ def test_every_vehicle_parameter_is_documented(paper_cfg):
 
 def test_effect_parameters_reach_the_simulator_in_flight(paper_cfg):
     """PARAM_SET on the vehicle model (no sockets): each effect acts from the next frame."""
-    from simvehicle.server import Vehicle
+    from simvehicle.server.server import Vehicle
 
     v = Vehicle(paper_cfg)
     for _ in range(10):

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from companion.config import FlowScale, FlowYawMisalignment, GyroBias, RangeOffset, with_effects
-from simvehicle.flow_sensor import flow_frame, sensor_axes
-from simvehicle.plant import AXIS_SIGN, PlantParams, axis_rk4
-from simvehicle.sim import Simulator
+from simvehicle.model.flow_sensor import flow_frame, sensor_axes
+from simvehicle.model.plant import AXIS_SIGN, PlantParams, axis_rk4
+from simvehicle.model.sim import Simulator
 
 
 def _integrate(x, u, force, alt, sign, p, t_end, h=1e-3):
@@ -99,7 +99,7 @@ def test_simulator_flow_scale_and_misalignment_change_counts(paper_cfg):
 
 
 def test_hand_written_rk4_equals_textbook_rk4(paper_cfg):
-    from simvehicle.plant import axis_rk4_reference
+    from simvehicle.model.plant import axis_rk4_reference
 
     rng = np.random.default_rng(5)
     p = PlantParams(2.3, 9.81, 5.4, 0.71, 0.2)

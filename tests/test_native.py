@@ -18,8 +18,8 @@ from pymavlink import mavutil
 from test_tlog_reader import FLIGHT_A, PROJECT_MESSAGES, Built, _write, build_all_types
 
 from companion import native
-from companion.recording import Recording
-from companion.tlog_reader import crc16_mcrf4xx, layout_of, read_tlog
+from companion.recordings.load import Recording
+from companion.recordings.tlog_reader import crc16_mcrf4xx, layout_of, read_tlog
 
 lib = native.kernels()
 pytestmark = pytest.mark.skipif(lib is None, reason="no C compiler: the numpy path is the only one")
@@ -235,7 +235,7 @@ def test_scan_without_sse2_equals_the_sse2_scan(tmp_path):
     import ctypes
     import subprocess
 
-    from companion import tlog_reader as tr
+    from companion.recordings import tlog_reader as tr
 
     so = tmp_path / "portable.so"
     subprocess.run([*native._compiler(), *native._FLAGS, "-DFH_NO_SSE2", "-o", str(so), str(native.SOURCE), "-lm"],
@@ -259,7 +259,7 @@ def test_reader_in_threads_equals_numpy_path(tmp_path, monkeypatch, n_threads):
     """The scan in 64 KiB pieces and the decoding in packet ranges, on 1-3 threads (each piece
     and range by the same kernel call as in one thread), on flight_a with damage in many pieces:
     the numpy path's recording."""
-    from companion import tlog_reader as tr
+    from companion.recordings import tlog_reader as tr
 
     path = _damaged_flight_a(tmp_path / "damaged.tlog", seed=13, n=60, every=2, xor=0x10)
     monkeypatch.setattr(tr, "_SCAN_CHUNK", 1 << 16)

@@ -23,7 +23,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 #: what a wheel is built from (the checkout's build/ and egg-info are left alone)
 SOURCES = ("pyproject.toml", "README.md", "companion", "simvehicle", "configs")
-SUBPACKAGES = ("companion", "companion.diagnose", "companion.importers", "companion.fleet", "simvehicle")
+SUBPACKAGES = ("companion", "companion.step", "companion.mavlink", "companion.recordings",
+               "companion.recordings.importers", "companion.tools", "companion.diagnose",
+               "companion.diagnose.closed_loop", "companion.diagnose.sensor", "companion.fleet",
+               "simvehicle", "simvehicle.model", "simvehicle.engines", "simvehicle.server", "simvehicle.tools")
 SHIPPED_CONFIGS = sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "configs").rglob("*.toml"))
 
 
@@ -86,7 +89,8 @@ def test_installed_package_imports_from_the_venv_with_its_configs(installed, tmp
              "cfg = load_config()\n"
              "print(json.dumps({'mods': mods, 'default': str(DEFAULT_CONFIG), 'q': cfg.flow_sensor.q_rad_per_count,"
              " 'path': sys.path}))\n")
-    out = json.loads(_run([str(py), "-c", probe, *SUBPACKAGES, "companion.sensor_diagnose", "simvehicle.fastsim"],
+    out = json.loads(_run([str(py), "-c", probe, *SUBPACKAGES, "companion.diagnose.closed_loop.command",
+                           "companion.diagnose.sensor.api", "simvehicle.engines.fastsim"],
                           cwd=tmp_path, env=env).stdout)
     venv_dir = py.parent.parent.resolve()
     for mod, file in out["mods"].items():

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from companion.estimator import scene_rate, scene_rate_scalar
-from companion.profiles import FieldView, Profile, flow_columns, flow_scalar
+from companion.step.estimator import scene_rate, scene_rate_scalar
+from companion.step.profiles import FieldView, Profile, flow_columns, flow_scalar
 
 ENC = mav.MAVLink(None, 1, 1)
 
@@ -50,7 +50,7 @@ def test_scalar_flow_equals_columns_bit_for_bit(profile):
 
 
 def _detect_live(msgs) -> tuple[Profile, str] | None:
-    from companion.profiles import LiveProfileDetector
+    from companion.step.profiles import LiveProfileDetector
 
     det = LiveProfileDetector()
     for m in msgs:
@@ -64,8 +64,8 @@ def _sim_messages(profile: Profile, n_frames: int, *, with_clock: bool = True, m
     import dataclasses
 
     from companion.config import load_config
-    from simvehicle import telemetry
-    from simvehicle.sim import Simulator
+    from simvehicle.model import telemetry
+    from simvehicle.model.sim import Simulator
 
     cfg = load_config()
     sim = Simulator(cfg)
@@ -108,7 +108,7 @@ def test_live_detector_tells_the_simulated_vehicles_profile_on_its_second_frame(
 def test_live_detector_without_a_clock_decides_by_content(moving, expected):
     """No gyro, range or attitude to compare times with: ArduPilot's rates moving while its truncated
     counts stay zero, after enough frames; at rest nothing tells."""
-    from companion.profiles import CONTENT_FRAMES
+    from companion.step.profiles import CONTENT_FRAMES
 
     found = _detect_live(_sim_messages(Profile.ARDUPILOT, CONTENT_FRAMES + 1, with_clock=False, moving=moving))
     assert (found[0] if found else None) is expected

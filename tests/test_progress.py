@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-import companion.recording
-from companion.importers import csv_columns, dataflash, ulog
+import companion.recordings.load
 from companion.progress import Stages
-from companion.recording import load_recording
+from companion.recordings.importers import csv_columns, dataflash, ulog
+from companion.recordings.load import load_recording
 
 REPO = Path(__file__).resolve().parent.parent
 BIN = REPO / "data" / "sitl" / "ardupilot" / "flight_c0.BIN.gz"
@@ -60,7 +60,7 @@ def test_each_importer_reports_every_stage_in_order(path, module, kwargs, monkey
         def close(self) -> None:
             seen.append((self.desc, str(self.enabled), str(self.total), *self.stages))
 
-    monkeypatch.setattr(companion.recording, "Stages", Recorder)
+    monkeypatch.setattr(companion.recordings.load, "Stages", Recorder)
     load_recording(path, progress=True, **kwargs)
     assert seen == [(f"importing {path.name}", "True", str(len(module.STAGES)), *module.STAGES)]
 

@@ -8,10 +8,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from companion.config import load_config
-from companion.controller import PiState, pi_step
-from companion.core import CompanionCore, HoldCause
-from companion.estimator import velocity_from_flow
-from companion.profiles import FlowColumns
+from companion.step.controller import PiState, pi_step
+from companion.step.core import CompanionCore, HoldCause
+from companion.step.estimator import velocity_from_flow
+from companion.step.profiles import FlowColumns
 
 CFG = load_config()
 LIMIT = CFG.controller.tilt_limit_rad

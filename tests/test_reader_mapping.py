@@ -9,8 +9,8 @@ import mmap
 import numpy as np
 import pytest
 
-from companion import tlog_reader
-from companion.tlog_reader import _PAD, read_tlog
+from companion.recordings import tlog_reader
+from companion.recordings.tlog_reader import _PAD, read_tlog
 
 
 def _same(a, b) -> None:

@@ -20,8 +20,9 @@ from companion.config import (
     replace_section,
     with_effects,
 )
-from simvehicle.flights import flight_plan
-from simvehicle.refly import (
+from simvehicle.engines.flights import flight_plan
+from simvehicle.engines.scenarios import Scenario, fly
+from simvehicle.tools.refly import (
     TURB_EDGE_FRAMES,
     engine_differences,
     force_residual,
@@ -29,7 +30,6 @@ from simvehicle.refly import (
     scores,
     window_kernel,
 )
-from simvehicle.scenarios import Scenario, fly
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -75,7 +75,7 @@ def test_window_kernel_gives_the_difference_of_boundary_means():
 
 
 def test_the_random_force_a_recording_saw_is_measured_from_its_force_balance(tmp_path, paper_cfg):
-    """Turbulence of 0.1 N (Gauss-Markov, 1 s, held over each frame, as simvehicle.sim.Turbulence) and
+    """Turbulence of 0.1 N (Gauss-Markov, 1 s, held over each frame, as simvehicle.model.sim.Turbulence) and
     nothing else: the estimator's expected value is m sqrt(V_1s - V_0.2s) / (40 T), V the variance of
     the frame-held AR(1) force summed with the window kernel (a closed form: c' R c (sigma T / m)^2)."""
     sigma, tau, T, m = 0.1, 1.0, paper_cfg.flow_sensor.frame_period_s, paper_cfg.airframe.mass_kg
@@ -102,7 +102,7 @@ def _run(*args: str) -> subprocess.CompletedProcess:
 
 def test_refly_cli_json_report_and_also(effects_flight, tmp_path):
     cfg_path = tmp_path / "fitted.toml"
-    from companion.fitted_model import config_toml
+    from companion.diagnose.fitted_model import config_toml
 
     cfg = _effects_cfg()
     w = cfg.effects.wind_force

@@ -1,6 +1,6 @@
 """Issue 16 end to end: effects set by PARAM_SET while flying, found, flown again, undone.
 
-``simvehicle.paramflight`` flies the in-process vehicle of ``serve`` with the companion; the
+``simvehicle.server.paramflight`` flies the in-process vehicle of ``serve`` with the companion; the
 vehicle applies ArduPilot's flow frontend (FLOW_FXSCALER, FLOW_FYSCALER, FLOW_ORIENT_YAW) to the
 ``ardupilot`` profile's flow as ArduPilot's source does (telemetry.ardupilot_flow_frontend).
 The whole matrix is ``scripts/refly_matrix.py`` (docs/refly_matrix.md).
@@ -12,17 +12,17 @@ import math
 
 import pytest
 
-from companion.advice import flow_scaler_permille, orient_yaw_cd
 from companion.config import FlowScale, FlowYawMisalignment, LinearDrag, WindForce, load_config, replace_section
-from companion.diagnose import write_model_out
-from companion.diagnose.diagnosis import diagnose
-from companion.profiles import Profile
-from companion.recording import load_recording
-from simvehicle.flights import flight_plan, param_error_ratios, with_sensor_noise
-from simvehicle.paramflight import ParamChange, fly_with_params
-from simvehicle.refly import compare
-from simvehicle.scenarios import Scenario
-from simvehicle.server import Vehicle
+from companion.diagnose.advice import flow_scaler_permille, orient_yaw_cd
+from companion.diagnose.closed_loop.command import write_model_out
+from companion.diagnose.closed_loop.diagnosis import diagnose
+from companion.recordings.load import load_recording
+from companion.step.profiles import Profile
+from simvehicle.engines.flights import flight_plan, param_error_ratios, with_sensor_noise
+from simvehicle.engines.scenarios import Scenario
+from simvehicle.server.paramflight import ParamChange, fly_with_params
+from simvehicle.server.server import Vehicle
+from simvehicle.tools.refly import compare
 
 
 def _rates(v: Vehicle) -> tuple[float, float]:

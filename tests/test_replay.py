@@ -1,7 +1,7 @@
 """Replay: the fast column replay equals the live message-by-message path, and reproduces the
 companion's recorded commands.
 
-Recordings come from the simulator (``simvehicle.scenarios.fly``, each profile) and from fault
+Recordings come from the simulator (``simvehicle.engines.scenarios.fly``, each profile) and from fault
 injection on them (a tlog rewritten message by message with pymavlink). The yardstick is
 ``replay.replay_live``: pymavlink decoding + the live ``MessageRouter`` + ``CompanionCore``.
 """
@@ -19,9 +19,12 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from companion.controller import PiState, pi_step
-from companion.convert import _records
-from companion.core import (
+from companion.errors import RecordingError
+from companion.mavlink.outbound import euler_to_quaternion, quaternion_to_euler
+from companion.recordings.load import load_recording
+from companion.recordings.tlog_writer import TlogWriter, mav_encoder
+from companion.step.controller import PiState, pi_step
+from companion.step.core import (
     CAUSE_CODES,
     FILTER_RESET,
     CompanionCore,
@@ -38,13 +41,10 @@ from companion.core import (
     repeat_mask,
     tilt_filter_columns,
 )
-from companion.errors import RecordingError
-from companion.outbound import euler_to_quaternion, quaternion_to_euler
-from companion.profiles import FlowColumns, Profile
-from companion.recording import load_recording
-from companion.replay import CSV_COLUMNS, ReplayResult, replay, replay_live, write_csv
-from companion.tlog_writer import TlogWriter, mav_encoder
-from simvehicle.scenarios import TLOG_EPOCH_S, Scenario, fly
+from companion.step.profiles import FlowColumns, Profile
+from companion.tools.convert import _records
+from companion.tools.replay import CSV_COLUMNS, ReplayResult, replay, replay_live, write_csv
+from simvehicle.engines.scenarios import TLOG_EPOCH_S, Scenario, fly
 
 REPO = Path(__file__).resolve().parent.parent
 #: a 2 m/s step at 0.5 s on both axes: the command saturates at the 20 deg limit (Fig. 16)
@@ -711,7 +711,7 @@ def _case(paper_cfg: Any, prof: Profile, name: str) -> tuple[Any, EstimatorOptio
     import dataclasses
 
     from companion import config as C
-    from companion.core import kalman_settings
+    from companion.step.core import kalman_settings
 
     options, sections = OPTION_CASES[name]
     cfg = paper_cfg
@@ -750,7 +750,7 @@ def test_every_hold_cause_is_in_the_agreement_test(every_cause_flights, paper_cf
     ``test_the_step_and_its_columns_agree_on_every_option`` under some option, or the live
     session's alone (``SESSION_CAUSES``: no step returns it; tests/test_session.py). A new cause
     fails here until it is one or the other, and a step cause until a recording shows it."""
-    from companion.core import SESSION_CAUSES
+    from companion.step.core import SESSION_CAUSES
 
     assert set(CAUSE_CODES).isdisjoint(SESSION_CAUSES)
     assert set(CAUSE_CODES) | set(SESSION_CAUSES) == set(HoldCause)

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from companion.advice import change_for, config_changes, how_sure, lead
 from companion.config import config_from_dict
-from companion.report import Finding, Fit, Report
-from companion.report_html import markdown_to_html, render, write_html_report
+from companion.diagnose.advice import change_for, config_changes, how_sure, lead
+from companion.diagnose.report import Finding, Fit, Report
+from companion.diagnose.report_html import markdown_to_html, render, write_html_report
 
 REPO = Path(__file__).resolve().parent.parent
 PAPER = REPO / "configs" / "paper.toml"

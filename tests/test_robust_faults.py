@@ -36,8 +36,8 @@ import pytest
 from loop_helpers import Gcs, Procs
 from test_robust_link import LEAN_RAD, FakeVehicle
 
-from companion.live import TEXT_REPEAT_S
-from companion.outbound import quaternion_to_euler
+from companion.mavlink.live import TEXT_REPEAT_S
+from companion.mavlink.outbound import quaternion_to_euler
 
 WIND_N = 2.0
 MASS_KG, G = 2.3, 9.81  # Table VI
@@ -270,13 +270,13 @@ def test_link_lost_and_back(tmp_path, paper_cfg):
 
 
 # ---------------------------------------------------------------------------------------------
-# The cross-frame checks (companion.core.Plausibility) alone: closed-form bounds, and no false
+# The cross-frame checks (companion.step.core.Plausibility) alone: closed-form bounds, and no false
 # alarm in the paper's scenarios or a noisy flight
 
 
 @pytest.fixture(scope="module")
 def params(paper_cfg):
-    from companion.core import PlausibilityParams
+    from companion.step.core import PlausibilityParams
 
     return PlausibilityParams.from_config(paper_cfg)
 
@@ -289,8 +289,8 @@ def test_plausibility_bounds_are_table_vi(params):
 
 
 def test_velocity_jump_gate_closed_form(params):
-    from companion.core import HoldCause as LiveCause
-    from companion.core import Plausibility
+    from companion.step.core import HoldCause as LiveCause
+    from companion.step.core import Plausibility
 
     allowed = params.max_accel_m_s2 * T_S + params.jump_noise_rad_s * ALT_M  # 0.771 m/s one frame later at 1 m
     for dv, vetoed in ((allowed - 1e-3, False), (allowed + 1e-3, True)):
@@ -315,8 +315,8 @@ def test_velocity_jump_gate_closed_form(params):
 
 
 def test_frozen_flow_and_gyro_closed_form(params):
-    from companion.core import HoldCause as LiveCause
-    from companion.core import Plausibility
+    from companion.step.core import HoldCause as LiveCause
+    from companion.step.core import Plausibility
 
     n, thr = params.frozen_frames, params.frozen_rotation_rad_s
     for span, frozen in ((0.9 * thr, False), (1.1 * thr, True)):
@@ -337,7 +337,7 @@ def test_frozen_flow_and_gyro_closed_form(params):
 
 
 def _flown_vetoes(run: Any, params: Any) -> int:
-    from companion.core import Plausibility
+    from companion.step.core import Plausibility
 
     p = Plausibility(params)
     c = run.columns
@@ -352,15 +352,15 @@ def _flown_vetoes(run: Any, params: Any) -> int:
 
 @pytest.mark.parametrize("name", ["step", "gust", "slow"])
 def test_no_false_alarm_in_the_paper_scenarios(paper_cfg, params, name):
-    from simvehicle.scenarios import SCENARIOS, fly
+    from simvehicle.engines.scenarios import SCENARIOS, fly
 
     assert _flown_vetoes(fly(paper_cfg, SCENARIOS[name]), params) == 0
 
 
 def test_no_false_alarm_in_a_noisy_varied_flight(paper_cfg, params):
     """20 s of varied flight with the gyro noise and rangefinder noise of the diagnosis flights."""
-    from simvehicle.flights import flight_plan, with_sensor_noise
-    from simvehicle.scenarios import fly
+    from simvehicle.engines.flights import flight_plan, with_sensor_noise
+    from simvehicle.engines.scenarios import fly
 
     run = fly(with_sensor_noise(paper_cfg), flight_plan(5, duration_s=20.0).scenario(), seed=5)
     assert np.abs(run["pitch_cmd_rad"]).max() > math.radians(5)  # it does manoeuvre
@@ -384,7 +384,7 @@ def test_every_test_named_in_docs_robustness_exists():
 def test_plausibility_columns_equal_frame_by_frame_checks(paper_cfg, seed):
     """Replay's screened column form of the cross-frame checks gives the same vetoes as calling
     ``Plausibility.check`` on every frame, on sequences built to trip every check (and not)."""
-    from companion.core import Plausibility, PlausibilityParams, plausibility_columns
+    from companion.step.core import Plausibility, PlausibilityParams, plausibility_columns
 
     rng = np.random.default_rng(seed)
     params = PlausibilityParams.from_config(paper_cfg)

@@ -5,7 +5,7 @@ and MAVLink 2 signing failures; every refusal is counted where a user sees it (S
 ``errors_comm`` / ``errors_count1``, the status line, the exit summaries).
 
 Three layers:
-- the vehicle's model (``simvehicle.server.Vehicle``) and its UDP adapter run in process on a
+- the vehicle's model (``simvehicle.server.server.Vehicle``) and its UDP adapter run in process on a
   free port, fed exact datagrams (exact counts, no timing);
 - the companion (``python -m companion run``) against a hand-made vehicle on a socket
   (``FakeVehicle``) that sends the reference simulator's frames one at a time and puts hostile
@@ -28,13 +28,13 @@ import numpy as np
 import pytest
 from loop_helpers import Gcs, Procs
 
-from companion import link
 from companion.config import Config
-from companion.outbound import COMPANION_COMPONENT, VELOCITY_TYPE_MASK, quaternion_to_euler
-from companion.profiles import Profile
-from simvehicle import telemetry
-from simvehicle.server import MAX_DATAGRAM_IN, StreamSchedule, UdpVehicle, Vehicle
-from simvehicle.sim import Simulator
+from companion.mavlink import link
+from companion.mavlink.outbound import COMPANION_COMPONENT, VELOCITY_TYPE_MASK, quaternion_to_euler
+from companion.step.profiles import Profile
+from simvehicle.model import telemetry
+from simvehicle.model.sim import Simulator
+from simvehicle.server.server import MAX_DATAGRAM_IN, StreamSchedule, UdpVehicle, Vehicle
 
 mav = link.mav
 NAN, INF = math.nan, math.inf
@@ -482,11 +482,11 @@ def test_companion_flies_on_through_garbage_floods_and_strangers(fake_pair):
 def test_a_flapping_cause_cannot_flood_the_link_with_statustext(fake_pair):
     """Flow quality 0 every other frame for 200 frames: without a limit the companion would send a
     STATUSTEXT each frame (HOLD, resumed, HOLD, ...). It says each once per TEXT_REPEAT_S
-    (companion.live.TextLimiter), and once the flow is good again the last text tells the ground
+    (companion.mavlink.live.TextLimiter), and once the flow is good again the last text tells the ground
     station the current state, with how many texts it held back."""
     import dataclasses
 
-    from companion.live import TEXT_REPEAT_S
+    from companion.mavlink.live import TEXT_REPEAT_S
 
     fv, procs = fake_pair
     comp = procs.companion(fv.port, "--quiet", "--profile", "paper")
@@ -584,7 +584,7 @@ def test_signing_key_from_a_passphrase_or_a_file(tmp_path):
 
 
 def test_status_line_shows_what_was_rejected(paper_cfg):
-    from companion.live import LiveCompanion
+    from companion.mavlink.live import LiveCompanion
 
     url = f"udpout:127.0.0.1:{_free_port()}"
     conn = link.open_connection(url, source_system=1, source_component=COMPANION_COMPONENT)

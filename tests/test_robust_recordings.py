@@ -29,8 +29,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion.cli import main
 from companion.config import load_config
-from simvehicle.flights import flight_plan, with_sensor_noise
-from simvehicle.scenarios import fly
+from simvehicle.engines.flights import flight_plan, with_sensor_noise
+from simvehicle.engines.scenarios import fly
 
 REPO = Path(__file__).resolve().parent.parent
 FLIGHT_S = 12.0

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from simvehicle.scenarios import (
+from simvehicle.engines.scenarios import (
     RAIL_ALTITUDE_M,
     RAIL_Q_RAD_PER_COUNT,
     TABLE_V_OUTPUT_RATE,
@@ -95,9 +95,9 @@ def test_open_loop_scenarios_record_what_the_sensor_produced(tmp_path, name, pro
     sensor's counts summing to the run's figure, and the slider as LOCAL_POSITION_NED."""
     import numpy as np
 
-    from companion.profiles import Profile, flow_columns
-    from companion.recording import load_recording
-    from simvehicle.scenarios import TLOG_EPOCH_S, TRIANGLE_RATE_HZ
+    from companion.recordings.load import load_recording
+    from companion.step.profiles import Profile, flow_columns
+    from simvehicle.engines.scenarios import TLOG_EPOCH_S, TRIANGLE_RATE_HZ
 
     tlog, js = tmp_path / f"{name}.tlog", tmp_path / f"{name}.json"
     r = subprocess.run([sys.executable, "-m", "simvehicle", "scenario", name, "--profile", profile, "--tlog",

@@ -1,6 +1,6 @@
-"""``companion.sensor_diagnose`` as a package (issue 13): one module per part, every name the
-single module held still importable from the package, each defined once, and the figure drawn
-without touching matplotlib's global state."""
+"""``companion.diagnose.sensor`` (once ``companion.sensor_diagnose``) as a package (issue 13): one module per
+part, every name the single module held still importable from ``companion.diagnose.sensor.api``, each
+defined once, and the figure drawn without touching matplotlib's global state."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import companion.sensor_diagnose as sd
+import companion.diagnose.sensor.api as sd
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGE = ROOT / "companion" / "sensor_diagnose"
+PACKAGE = ROOT / "companion" / "diagnose" / "sensor"
 #: the public names ``companion/sensor_diagnose.py`` held at its top level before the split
 FORMER_NAMES = (
     "GRAVITY_M_S2", "QUANT_RMS_COUNTS", "SensorDiagnosisSettings", "DocumentedMotion", "DOCUMENTED_MOTIONS",
@@ -42,14 +42,15 @@ def test_every_former_name_is_exported_and_defined_in_one_module():
     assert set(FORMER_NAMES) <= set(sd.__all__)
     where: dict[str, list[str]] = {}
     for path in sorted(PACKAGE.glob("*.py")):
-        if path.name != "__init__.py":
+        if path.name not in ("__init__.py", "api.py"):
             for name in _defined(path):
                 where.setdefault(name, []).append(path.stem)
     for name in FORMER_NAMES:
         assert callable(getattr(sd, name)) or getattr(sd, name) is not None, name
         if name not in ("ReadGrid", "find_read_grid"):  # (the CSV importers' read grid, re-exported)
             assert len(where.get(name, [])) == 1, (name, where.get(name))
-    assert not _defined(PACKAGE / "__init__.py") - {"__all__"}  # the package only re-exports
+    assert not _defined(PACKAGE / "api.py") - {"__all__"}  # the api module only re-exports
+    assert not _defined(PACKAGE / "__init__.py")  # and the package's __init__ holds nothing
 
 
 def test_the_documented_motions_are_data_in_their_own_module():
@@ -63,8 +64,8 @@ def test_the_figure_leaves_matplotlibs_state_alone(tmp_path):
         "import sys, matplotlib\n"
         "from pathlib import Path\n"
         "from companion.config import load_config\n"
-        "from companion.recording import load_recording\n"
-        "from companion.sensor_diagnose import run_sensor_diagnosis\n"
+        "from companion.recordings.load import load_recording\n"
+        "from companion.diagnose.sensor.api import run_sensor_diagnosis\n"
         "before = dict.__getitem__(matplotlib.rcParams, 'backend')  # (without resolving it)\n"
         f"rec = load_recording({str(ROOT / 'data/real/stampfly/static_final.csv.gz')!r}, "
         f"sensor_config={str(ROOT / 'configs/sensors/stampfly.toml')!r})\n"

@@ -1,7 +1,7 @@
-"""The live companion's session (``companion.session.Session``) in process, message by message:
+"""The live companion's session (``companion.mavlink.session.Session``) in process, message by message:
 no socket, no clock (times are passed in), every number exact. Engagement and take-over, the
 setpoint's hold and ramp, each hold cause and the recovery from it, a stall's backlog, frame
-order. The live loop around it (``companion.live``) is tested over fake and real links in
+order. The live loop around it (``companion.mavlink.live``) is tested over fake and real links in
 test_stall.py, test_loop_e2e.py, test_robust_*.py and the *_e2e.py files."""
 
 from __future__ import annotations
@@ -12,14 +12,10 @@ from typing import Any
 
 import pytest
 
-from companion import link
 from companion.config import load_config
-from companion.controller import PiState, pi_step
-from companion.core import HoldCause
-from companion.mavlink_ids import COMPANION_COMPONENT, GUIDED_NOGPS
-from companion.outbound import VELOCITY_TYPE_MASK
-from companion.profiles import Profile
-from companion.session import (
+from companion.mavlink import link
+from companion.mavlink.outbound import VELOCITY_TYPE_MASK
+from companion.mavlink.session import (
     BACKLOG_SAY_FRAMES,
     HEARTBEAT_TIMEOUT_S,
     LONG_HOLD_S,
@@ -31,8 +27,12 @@ from companion.session import (
     Say,
     Session,
 )
-from companion.setpoint import decayed_setpoint
-from simvehicle import telemetry
+from companion.mavlink_ids import COMPANION_COMPONENT, GUIDED_NOGPS
+from companion.step.controller import PiState, pi_step
+from companion.step.core import HoldCause
+from companion.step.profiles import Profile
+from companion.step.setpoint import decayed_setpoint
+from simvehicle.model import telemetry
 
 mav = link.mav
 CFG = load_config()
@@ -408,7 +408,7 @@ def test_the_live_loop_reaches_into_no_field_of_the_core():
     """The session asks the core (``reset_integrator``, ``restart_checks``, ``frame_order``,
     ``skip_frame``); the live loop asks the session."""
     for name in ("live.py", "session.py"):
-        text = (ROOT / "companion" / name).read_text(encoding="utf-8")
+        text = (ROOT / "companion" / "mavlink" / name).read_text(encoding="utf-8")
         for reach in (".pi.state", ".plausible.", "last_setpoint_time", "classify_frame("):
             assert reach not in text, (name, reach)
 
@@ -419,7 +419,7 @@ def test_every_session_cause_is_held_by_a_session_here(monkeypatch):
     tests above check in detail: the flow stale on the vehicle's clock, the link lost, a stall,
     frames that keep coming too old (a backlog). A new session cause fails here until a
     situation shows it."""
-    from companion.core import SESSION_CAUSES
+    from companion.step.core import SESSION_CAUSES
 
     seen: set[HoldCause] = set()
 

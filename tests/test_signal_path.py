@@ -1,6 +1,6 @@
 """One signal path from a recording (issue 13): every gyro message of the contract gives the same
 signals to replay, diagnose and the sensor-only diagnosis; one vehicle-id rule for all three (the
-most frequent flow sender, ``companion.columnar.vehicle_sysid``); the simulated vehicle's
+most frequent flow sender, ``companion.recordings.columnar.vehicle_sysid``); the simulated vehicle's
 recording run reads the flow with the flight's own parameter set."""
 
 from __future__ import annotations
@@ -16,18 +16,18 @@ import numpy as np
 import pytest
 from numpy.testing import assert_array_equal
 
-from companion import signals
-from companion.columnar import MessageTable, Recording, vehicle_sysid
 from companion.config import Config, replace_section
-from companion.diagnose.channels import extract
-from companion.diagnose.diagnosis import diagnose
-from companion.inbound import gyro_time_s
-from companion.profiles import GYRO_MESSAGES, Profile
-from companion.recording import load_recording
-from companion.replay import replay
-from companion.sensor_diagnose import extract_series
-from simvehicle.scenarios import run_named
-from simvehicle.server import recording_run
+from companion.diagnose.closed_loop.channels import extract
+from companion.diagnose.closed_loop.diagnosis import diagnose
+from companion.diagnose.sensor.api import extract_series
+from companion.mavlink.inbound import gyro_time_s
+from companion.recordings import signals
+from companion.recordings.columnar import MessageTable, Recording, vehicle_sysid
+from companion.recordings.load import load_recording
+from companion.step.profiles import GYRO_MESSAGES, Profile
+from companion.tools.replay import replay
+from simvehicle.engines.scenarios import run_named
+from simvehicle.server.server import recording_run
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
@@ -202,7 +202,7 @@ def test_another_systems_gyro_is_not_the_vehicles(gust, gust_scaled_stray_raw, p
     """Five RAW_IMU from system 7 beside the vehicle's SCALED_IMU: the analyses took the first gyro
     message of the recording (RAW_IMU, none of it the vehicle's: diagnose found no usable frame, the
     sensor-only diagnosis an empty gyro); they now take the vehicle's own
-    (companion.signals.gyro_sensor), and so see the RAW_IMU recording's signals and say the same."""
+    (companion.recordings.signals.gyro_sensor), and so see the RAW_IMU recording's signals and say the same."""
     raw, rec = load_recording(gust), load_recording(gust_scaled_stray_raw)
     assert len(rec.table("RAW_IMU")) == 5 and set(rec.table("RAW_IMU").sysid.tolist()) == {7}
     _assert_replays_equal(replay(rec, paper_cfg, Profile.PAPER), replay(raw, paper_cfg, Profile.PAPER))
@@ -248,7 +248,7 @@ def _assert_runs_equal(a: Any, b: Any) -> None:
 
 def test_recording_run_takes_every_gyro_message_and_the_vehicle_by_its_flow(gust, gust_scaled, gust_stray,
                                                                              gust_clipped):
-    """simvehicle.server.recording_run reads the recording through companion.signals: a SCALED_IMU
+    """simvehicle.server.server.recording_run reads the recording through companion.recordings.signals: a SCALED_IMU
     gyro gives the RAW_IMU columns (it read RAW_IMU only: NaN); stray flow messages from another
     system's autopilot component are not the vehicle's (it took component 1 of any system: the
     first frame's counts were the stray message's); a clipped gyro sample is unknown (NaN)."""
@@ -298,7 +298,7 @@ def _table(name: str, records: list[int], sysid: int = 1, compid: int = 1, **fie
 
 
 def test_signals_every_gyro_message_in_si_units_on_its_own_time_field():
-    """companion.signals: RAW_IMU (mrad/s, time_usec), SCALED_IMU (mrad/s, time_boot_ms) and
+    """companion.recordings.signals: RAW_IMU (mrad/s, time_usec), SCALED_IMU (mrad/s, time_boot_ms) and
     HIGHRES_IMU (rad/s, time_usec) give the same rad/s and seconds; an int16 field at 32767 has
     clipped (x and y NaN, as the live loop has it); as received they merge in arrival order, as
     one sensor the first of the three the vehicle sent; another system's gyro is not the vehicle's."""
@@ -366,7 +366,7 @@ def test_signals_senders_range_and_commands():
 
 
 def test_the_live_loop_reads_a_gyro_message_by_the_same_rules():
-    """The live router (one message) and companion.signals (columns) share the time-field table,
+    """The live router (one message) and companion.recordings.signals (columns) share the time-field table,
     the units and the clip limit (profiles.TIME_FIELDS, GYRO_MESSAGES, INT16_CLIP)."""
     enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
     msgs = [enc.raw_imu_encode(1_235_000, 0, 0, -1000, 25, -40, 3, 0, 0, 0),

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.core import _trailing_span, _trailing_span_direct
-from companion.info import _median
+from companion.step.core import _trailing_span, _trailing_span_direct
+from companion.tools.info import _median
 
 
 @pytest.mark.parametrize("m", [1, 2, 3, 7, 25, 60, 101, 150])
@@ -42,7 +42,7 @@ def test_times_that_never_go_back_have_no_spike(seed):
     """``tlog_reader._repair_times`` skips the spike scan when the record times never go back:
     the scan finds none there (steps of any size, repeats, clock jumps of hours, times near
     2^64 us where the doubles are coarse)."""
-    from companion.tlog_reader import TIME_SPIKE_TOL_S, _spikes
+    from companion.recordings.tlog_reader import TIME_SPIKE_TOL_S, _spikes
 
     rng = np.random.default_rng(seed)
     n = 20_000
@@ -56,7 +56,7 @@ def test_times_that_never_go_back_have_no_spike(seed):
 def test_stable_order_equals_a_stable_argsort():
     """``replay._stable_order`` skips the sort of keys already in order: the same order as
     ``np.argsort(kind="stable")`` for sorted keys, ties, one swap, NaN, empty and one key."""
-    from companion.replay import _stable_order
+    from companion.tools.replay import _stable_order
 
     rng = np.random.default_rng(4)
     sorted_keys = np.sort(rng.integers(0, 50, 1000)).astype(float)

@@ -15,13 +15,13 @@ import math
 import pytest
 from fake_link import FakeLink
 
-from companion import link, outbound
 from companion.config import load_config
-from companion.controller import pi_step
-from companion.core import HoldCause
-from companion.link import ClockMapping
-from companion.live import BACKLOG_SAY_FRAMES, LONG_HOLD_S, MAX_FRAME_AGE_FRAMES, HoldMonitor, LiveCompanion
-from companion.profiles import Profile
+from companion.mavlink import link, outbound
+from companion.mavlink.link import ClockMapping
+from companion.mavlink.live import BACKLOG_SAY_FRAMES, LONG_HOLD_S, MAX_FRAME_AGE_FRAMES, HoldMonitor, LiveCompanion
+from companion.step.controller import pi_step
+from companion.step.core import HoldCause
+from companion.step.profiles import Profile
 
 mav = link.mav
 CFG = load_config()

@@ -22,8 +22,7 @@ from scipy import signal
 
 from companion.cli import build_parser
 from companion.config import load_config
-from companion.recording import load_recording
-from companion.sensor_diagnose import (
+from companion.diagnose.sensor.api import (
     SensorDiagnosis,
     markdown_report,
     plot_diagnosis,
@@ -31,6 +30,7 @@ from companion.sensor_diagnose import (
     run_sensor_cli,
     run_sensor_diagnosis,
 )
+from companion.recordings.load import load_recording
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = REPO / "data" / "real" / "stampfly"

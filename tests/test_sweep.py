@@ -13,8 +13,9 @@ import pytest
 
 from companion import config as C
 from companion.errors import ConfigError
-from simvehicle import fastsim, sweep
-from simvehicle.scenarios import SCENARIOS, figures
+from simvehicle.engines import fastsim
+from simvehicle.engines.scenarios import SCENARIOS, figures
+from simvehicle.tools import sweep
 
 REPO = Path(__file__).resolve().parent.parent
 PAPER = REPO / "configs" / "paper.toml"

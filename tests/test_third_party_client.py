@@ -21,7 +21,7 @@ pytest.importorskip("MAVProxy", reason="MAVProxy is not installed (pip install M
 
 from pymavlink import mavutil  # noqa: E402
 
-from simvehicle.server import param_specs  # noqa: E402
+from simvehicle.server.server import param_specs  # noqa: E402
 
 
 def test_mavproxy_connects_sees_and_arms_the_vehicle(tmp_path, paper_cfg):

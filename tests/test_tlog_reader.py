@@ -15,11 +15,11 @@ from pymavlink import mavutil
 from pymavlink.dialects.v10 import ardupilotmega as mavlink1
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-import companion.tlog_reader as tr
+import companion.recordings.tlog_reader as tr
 from companion.errors import RecordingError
-from companion.recording import Recording, load_recording
-from companion.tlog_reader import crc16_mcrf4xx, crc_of_rows, read_tlog
-from companion.tlog_writer import TlogWriter, mav_encoder
+from companion.recordings.load import Recording, load_recording
+from companion.recordings.tlog_reader import crc16_mcrf4xx, crc_of_rows, read_tlog
+from companion.recordings.tlog_writer import TlogWriter, mav_encoder
 
 #: in the repository, gzip-compressed (read directly; pymavlink gets the ``flight_a_plain`` copy)
 FLIGHT_A = Path(__file__).resolve().parents[1] / "data" / "sitl" / "ardupilot" / "flight_a.tlog.gz"

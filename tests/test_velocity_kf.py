@@ -38,7 +38,6 @@ from fake_link import FakeLink
 from pymavlink import mavutil
 from scipy.special import ndtr
 
-from companion import link, outbound
 from companion.config import (
     FlowDelay,
     LinearDrag,
@@ -49,22 +48,17 @@ from companion.config import (
     replace_section,
     with_effects,
 )
-from companion.core import (
-    CompanionCore,
-    EstimatorOptions,
-    VelocityEstimator,
-    gyro_window_mean,
-    kalman_settings,
-)
 from companion.errors import ConfigError
-from companion.estimator import MAX_ATTITUDE_AGE_S, KalmanSettings, VelocityKalman, boxed_moments
-from companion.live import LiveCompanion
-from companion.profiles import FlowColumns, Profile, accel_m_s2
-from companion.recording import load_recording
-from companion.replay import replay
-from simvehicle import telemetry
-from simvehicle.scenarios import figures, run_named
-from simvehicle.sim import Simulator, Turbulence
+from companion.mavlink import link, outbound
+from companion.mavlink.live import LiveCompanion
+from companion.recordings.load import load_recording
+from companion.step.core import CompanionCore, EstimatorOptions, VelocityEstimator, gyro_window_mean, kalman_settings
+from companion.step.estimator import MAX_ATTITUDE_AGE_S, KalmanSettings, VelocityKalman, boxed_moments
+from companion.step.profiles import FlowColumns, Profile, accel_m_s2
+from companion.tools.replay import replay
+from simvehicle.engines.scenarios import figures, run_named
+from simvehicle.model import telemetry
+from simvehicle.model.sim import Simulator, Turbulence
 
 mav = link.mav
 G = 9.81
@@ -348,7 +342,7 @@ def test_config_rejects_unknown_estimators_in_one_line(paper_cfg):
 
 
 def test_fastsim_refuses_an_estimator_it_does_not_model(paper_cfg):
-    from simvehicle.fastsim import simulate_batch
+    from simvehicle.engines.fastsim import simulate_batch
 
     simulate_batch(paper_cfg, 1, duration_s=0.04, columns=("vx_m_s",))  # auto: eq. 15, modelled
     sitl = load_config(REPO / "configs" / "ardupilot_sitl.toml")  # auto, and an age only the filter reads

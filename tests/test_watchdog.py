@@ -20,9 +20,9 @@ from pathlib import Path
 
 import pytest
 
-from companion import link, outbound
 from companion.ardupilot_script import SCRIPT_NAME, script_text
 from companion.cli import main
+from companion.mavlink import link, outbound
 
 mav = link.mav
 LUA = shutil.which("lua5.4")
@@ -71,7 +71,7 @@ def _fly(paper_cfg, *, fhw: dict[str, float], commands_until_s: float, heartbeat
     """A vehicle armed in GUIDED_NOGPS, its companion sending a lean command each frame and a
     HEARTBEAT each second until the given times. Returns (vehicle, [(t, messages the watchdog sent)],
     [(t, active roll, pitch)])."""
-    from simvehicle.server import StreamSchedule, Vehicle
+    from simvehicle.server.server import StreamSchedule, Vehicle
 
     v = Vehicle(paper_cfg)
     for name, value in fhw.items():

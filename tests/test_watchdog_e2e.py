@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from loop_helpers import Gcs, Procs
 
-from companion.outbound import quaternion_to_euler
-from companion.recording import load_recording
+from companion.mavlink.outbound import quaternion_to_euler
+from companion.recordings.load import load_recording
 
 WIND_N = 2.0
 LEAN_RAD = math.atan(WIND_N / (2.3 * 9.81))

@@ -1,6 +1,6 @@
 """What a mismatch report means for the config, in plain words: what differs, how sure, what to change.
 
-A report (``companion.report.Report``, either diagnose mode) names the effects the nominal model
+A report (``companion.diagnose.report.Report``, either diagnose mode) names the effects the nominal model
 leaves out with their fitted parameters. This module turns them into
 
 - ``config_changes``: the TOML keys to set, with the fitted values as suggestions (keys and
@@ -57,8 +57,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import EFFECT_TYPES
-from companion.recording import Recording
-from companion.report import Action, Finding, Report
+from companion.diagnose.report import Action, Finding, Report
+from companion.recordings.load import Recording
 
 #: effects that describe the flight, not the vehicle: nothing to change in a vehicle's config
 CIRCUMSTANCES = {"wind_force": "a wind during this flight, not a property of the vehicle"}
@@ -310,7 +310,7 @@ def _px4_actions(f: Finding, cur: dict[str, float]) -> list[Action]:
 
 def recorded_parameters(rec: Recording) -> dict[str, float]:
     """The autopilot's parameters the recording holds (PARAM_VALUE from component 1 of any system,
-    the last value of each name): what the vehicle flew with, for ``companion.advice.actions``."""
+    the last value of each name): what the vehicle flew with, for ``companion.diagnose.advice.actions``."""
     pv = rec.tables.get("PARAM_VALUE")
     if pv is None or len(pv) == 0 or "param_id" not in pv.fields:
         return {}

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import EFFECT_TYPES, Config
-from companion.report import PARAMETER_UNITS, Finding, Report
+from companion.diagnose.report import PARAMETER_UNITS, Finding, Report
 
 #: the config's sections, in its order (every field of ``Config`` but the effects and the source)
 SECTIONS = tuple(f.name for f in dataclasses.fields(Config) if f.name not in ("effects", "source"))

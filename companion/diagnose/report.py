@@ -153,7 +153,7 @@ class Report:
     mode: str = "flight"  # "flight" (closed loop) or "sensor" (sensor-only)
     #: the first line a reader needs, in plain words (``diagnose`` writes it)
     headline: str = ""
-    #: what to set, per finding (``companion.advice.actions``)
+    #: what to set, per finding (``companion.diagnose.advice.actions``)
     actions: list[Action] = field(default_factory=list)
 
     def significant(self) -> list[Finding]:

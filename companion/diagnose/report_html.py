@@ -3,11 +3,11 @@
 The page is the Markdown report of the same run (``report.md``, with its PNG plots beside it)
 turned into HTML, the plots embedded as base64 PNG, so it opens offline and travels as one
 file; nothing on it is loaded from elsewhere. Above the evidence comes the first line in plain
-words (``companion.advice.lead``: what differs, how sure, what to change in the config with the
+words (``companion.diagnose.advice.lead``: what differs, how sure, what to change in the config with the
 suggested values) and the config changes as TOML ready to paste.
 
-Both diagnose modes use it: the closed-loop finder (``companion.diagnose``) and the sensor-only
-diagnosis (``companion.sensor_diagnose``). It reads only the report and the files written beside
+Both diagnose modes use it: the closed-loop finder (``companion.diagnose.closed_loop.command``) and the sensor-only
+diagnosis (``companion.diagnose.sensor.api``). It reads only the report and the files written beside
 it, so the content stays the Markdown writers'.
 """
 
@@ -18,9 +18,9 @@ import html
 import re
 from pathlib import Path
 
-from companion.advice import config_changes, lead
+from companion.diagnose.advice import config_changes, lead
+from companion.diagnose.report import Report
 from companion.errors import FlowholdError
-from companion.report import Report
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1150px;margin:2em auto;padding:0 1em;color:#222;
 line-height:1.45}h1{font-size:1.5em}h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ddd}

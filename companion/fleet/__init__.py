@@ -7,6 +7,6 @@
 - ``table``: the fleet table (CSV, Parquet) and its outliers;
 - ``summary``: the HTML fleet summary.
 
-This package's ``__init__`` imports nothing, so ``simvehicle.sweep`` can use ``engine`` without
+This package's ``__init__`` imports nothing, so ``simvehicle.tools.sweep`` can use ``engine`` without
 loading the diagnosis.
 """

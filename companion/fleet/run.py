@@ -42,7 +42,7 @@ from companion.fleet.engine import INSTALL_HINT, Engine, TaskLost
 from companion.fleet.summary import write_summary
 from companion.fleet.table import flag_outliers, have_pyarrow, rows_of, write_csv, write_parquet
 from companion.fleet.work import FileResult, Job, diagnose_file, warm_up
-from companion.recording import recording_suffix
+from companion.recordings.load import recording_suffix
 
 __all__ = ["FleetRun", "find_recordings", "run_fleet", "run_cli"]
 

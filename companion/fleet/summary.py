@@ -16,8 +16,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from companion.diagnose.report import PARAMETER_UNITS as UNITS
 from companion.fleet.table import NOT_VEHICLE_PROPERTIES, OUTLIER_SIGMA, TIME_PARAMETERS
-from companion.report import PARAMETER_UNITS as UNITS
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ddd}

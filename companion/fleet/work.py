@@ -15,13 +15,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from companion.columnar import vehicle_sysid
 from companion.config import Config
-from companion.diagnose.channels import has_commands
-from companion.diagnose.diagnosis import diagnose
+from companion.diagnose.closed_loop.channels import has_commands
+from companion.diagnose.closed_loop.diagnosis import diagnose
+from companion.diagnose.sensor.api import run_sensor_diagnosis
 from companion.errors import FlowholdError, RecordingError
-from companion.recording import Recording, load_recording, recording_suffix
-from companion.sensor_diagnose import run_sensor_diagnosis
+from companion.recordings.columnar import vehicle_sysid
+from companion.recordings.load import Recording, load_recording, recording_suffix
 
 #: log times above this (2000-01-01) are UNIX times; below it a reader's boot time
 UNIX_2000_S = 946_684_800.0

@@ -2,7 +2,7 @@
 
 Units and signs are converted here and nowhere else: RAW_IMU / SCALED_IMU gyro mrad/s and
 HIGHRES_IMU rad/s -> rad/s; DISTANCE_SENSOR cm -> m (orientation 25 only); the flow message by
-the sensor profile (``companion.profiles``); velocity setpoints from SET_POSITION_TARGET_LOCAL_NED
+the sensor profile (``companion.step.profiles``); velocity setpoints from SET_POSITION_TARGET_LOCAL_NED
 (body frames 8, 9, 12, or LOCAL_NED rotated by the vehicle's yaw) and MANUAL_CONTROL sticks.
 """
 
@@ -12,9 +12,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from companion.core import CompanionCore, StepOutput
 from companion.mavlink_ids import BODY_FRAMES, COMPANION_COMPONENT, DOWNWARD, MAV_COMP_ID_ALL, MAV_FRAME_LOCAL_NED
-from companion.profiles import (
+from companion.step.core import CompanionCore, StepOutput
+from companion.step.profiles import (
     FLOW_MESSAGE,
     GYRO_MESSAGES,
     INT16_CLIP,

@@ -37,7 +37,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav  # noqa: E402
 
 from companion.errors import LinkError, UsageError  # noqa: E402
 from companion.mavlink_ids import GUIDED_NOGPS as GUIDED_NOGPS  # noqa: E402  (link.GUIDED_NOGPS, re-exported)
-from companion.tlog_writer import SIM_CLOCK_TEXT  # noqa: E402
+from companion.recordings.tlog_writer import SIM_CLOCK_TEXT  # noqa: E402
 
 #: ArduCopter's flight modes by custom_mode number (the ones a GCS names)
 COPTER_MODES = {0: "STABILIZE", 1: "ACRO", 2: "ALT_HOLD", 3: "AUTO", 4: "GUIDED", 5: "LOITER", 6: "RTL",

@@ -1,11 +1,11 @@
 """The live companion: ``python -m companion run --connect URL [--arm] [--setpoint VX,VY]``.
 
-The socket, the clock and the I/O around one ``companion.session.Session``, which holds what the
+The socket, the clock and the I/O around one ``companion.mavlink.session.Session``, which holds what the
 companion decides (engagement and take-over, setpoints and their decay, one control step per new
 flow frame through ``CompanionCore``, staleness and the hold causes, what is said): this module
 reads the link, hands each message to the session with its time, runs the session's watchdog
 each pass of its loop, and sends what the session returns. The session's messages are the same
-``companion.outbound`` messages the in-process scenarios send, so a lockstep run over UDP
+``companion.mavlink.outbound`` messages the in-process scenarios send, so a lockstep run over UDP
 reproduces them frame for frame. What is the loop's own:
 
 - the sensor profile: ``--profile``, or detected from the vehicle's first messages before
@@ -29,7 +29,7 @@ reproduces them frame for frame. What is the loop's own:
   parsed on its own; commands to the companion are refused with a COMMAND_ACK; what is refused is
   counted in the status line (``rejected N``) and the exit summary.
 
-The failsafes and announcements themselves are described in ``companion.session``.
+The failsafes and announcements themselves are described in ``companion.mavlink.session``.
 """
 
 from __future__ import annotations
@@ -43,24 +43,24 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from companion import link, outbound
 from companion.config import Config, load_config
-from companion.core import FrameOrder as FrameOrder  # (re-exported: companion.live.FrameOrder)
-from companion.core import HoldCause, StepOutput
-from companion.core import classify_frame as classify_frame
 from companion.errors import LinkError, UsageError, check_output, output_error
+from companion.mavlink import link, outbound
+from companion.mavlink.session import AGE_SLACK_S as AGE_SLACK_S
+from companion.mavlink.session import BACKLOG_SAY_FRAMES as BACKLOG_SAY_FRAMES
+from companion.mavlink.session import HEARTBEAT_TIMEOUT_S as HEARTBEAT_TIMEOUT_S
+from companion.mavlink.session import LONG_HOLD_S as LONG_HOLD_S
+from companion.mavlink.session import MAX_FRAME_AGE_FRAMES as MAX_FRAME_AGE_FRAMES
+from companion.mavlink.session import REBOOT_JUMP_S as REBOOT_JUMP_S
+from companion.mavlink.session import Command, Estimate, HoldMonitor, Out, Say, Session, vehicle_time_s
+from companion.mavlink.session import safe_attitude as safe_attitude
 from companion.mavlink_ids import GUIDED_NOGPS
-from companion.profiles import FLOW_MESSAGE, LiveProfileDetector, Profile
-from companion.session import AGE_SLACK_S as AGE_SLACK_S
-from companion.session import BACKLOG_SAY_FRAMES as BACKLOG_SAY_FRAMES
-from companion.session import HEARTBEAT_TIMEOUT_S as HEARTBEAT_TIMEOUT_S
-from companion.session import LONG_HOLD_S as LONG_HOLD_S
-from companion.session import MAX_FRAME_AGE_FRAMES as MAX_FRAME_AGE_FRAMES
-from companion.session import REBOOT_JUMP_S as REBOOT_JUMP_S
-from companion.session import Command, Estimate, HoldMonitor, Out, Say, Session, vehicle_time_s
-from companion.session import safe_attitude as safe_attitude
-from companion.setpoint import decayed_setpoint as decayed_setpoint
-from companion.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S, TlogWriter
+from companion.recordings.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S, TlogWriter
+from companion.step.core import FrameOrder as FrameOrder  # (re-exported: companion.mavlink.live.FrameOrder)
+from companion.step.core import HoldCause, StepOutput
+from companion.step.core import classify_frame as classify_frame
+from companion.step.profiles import FLOW_MESSAGE, LiveProfileDetector, Profile
+from companion.step.setpoint import decayed_setpoint as decayed_setpoint
 
 mav = link.mav
 

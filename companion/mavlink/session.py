@@ -1,5 +1,5 @@
 """The live companion's session: engagement, take-over, setpoints, staleness and holds, and what is
-said about them, in one object with time passed in (issue 13). ``companion.live`` keeps the
+said about them, in one object with time passed in (issue 13). ``companion.mavlink.live`` keeps the
 socket, the clock and the I/O: it reads the link, hands each message to ``Session.on_message``
 with its time, runs ``Session.tick`` (the watchdog) each pass of its loop, and sends what comes
 back (``Command``, ``Estimate``, ``Say``, ``Note``). Nothing here reads a clock, opens a socket or
@@ -42,13 +42,13 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any
 
-from companion import link
 from companion.config import Config
-from companion.core import CROSS_FRAME_CAUSES, FRAME_REBOOT_S, CompanionCore, FrameOrder, HoldCause, StepOutput
-from companion.inbound import MessageRouter, gyro_time_s, scalar_flow
+from companion.mavlink import link
+from companion.mavlink.inbound import MessageRouter, gyro_time_s, scalar_flow
 from companion.mavlink_ids import GUIDED_NOGPS
-from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, Profile
-from companion.setpoint import decayed_setpoint
+from companion.step.core import CROSS_FRAME_CAUSES, FRAME_REBOOT_S, CompanionCore, FrameOrder, HoldCause, StepOutput
+from companion.step.profiles import FLOW_MESSAGE, GYRO_MESSAGES, Profile
+from companion.step.setpoint import decayed_setpoint
 
 mav = link.mav
 

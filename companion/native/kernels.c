@@ -3,11 +3,11 @@
  *
  * Each function is a compiled copy of a numpy formulation in the Python package, which stays the
  * definition and the fallback when no C compiler is available:
- *   fh_scan       <- companion/tlog_reader.py, _find_packets pass 1 (_claimed_end, _parse_headers,
+ *   fh_scan       <- companion/recordings/tlog_reader.py, _find_packets pass 1 (_claimed_end, _parse_headers,
  *                    _check_crc), candidate by candidate;
- *   fh_tables, fh_fields <- companion/tlog_reader.py, _tables_numpy (_decode_fast), the first
+ *   fh_tables, fh_fields <- companion/recordings/tlog_reader.py, _tables_numpy (_decode_fast), the first
  *                    the tables' rows, the second the fields asked for;
- *   fh_csv_rows   <- companion/csv_format.py, format_rows (itself Python's % formatting);
+ *   fh_csv_rows   <- companion/tools/csv_format.py, format_rows (itself Python's % formatting);
  *   fh_searchsorted_* <- numpy.searchsorted on a sorted array (companion/native.py, searchsorted).
  * The tests hold each equal to the one it copies (tests/test_native.py). Loaded through ctypes by
  * companion/native.py, which compiles this file once with the system's C compiler.

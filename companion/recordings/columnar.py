@@ -7,8 +7,8 @@ message's position in the file (``record``), so the original interleaving of mes
 be rebuilt by sorting on ``record``. Opening a recording file, plain or gzip-compressed
 (``read_recording_bytes``, ``open_recording``), is here too.
 
-This module sits below the readers (``companion.tlog_reader``, ``companion.importers``), which
-build these tables; ``companion.recording.load_recording`` picks a reader by file type, above
+This module sits below the readers (``companion.recordings.tlog_reader``, ``companion.recordings.importers``), which
+build these tables; ``companion.recordings.load.load_recording`` picks a reader by file type, above
 them, and re-exports these names (issue 13: the readers no longer import the module that
 imports them).
 """

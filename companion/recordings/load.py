@@ -1,12 +1,12 @@
 """Any recording into the columnar form: ``load_recording`` picks a reader by file type.
 
-Readers: ``companion.tlog_reader.read_tlog`` (.tlog), ``companion.importers`` (DataFlash .bin,
+Readers: ``companion.recordings.tlog_reader.read_tlog`` (.tlog), ``companion.recordings.importers`` (DataFlash .bin,
 PX4 .ulg, CSV with a column map). Every reader also takes the file gzip-compressed
 (``.tlog.gz``, ``.bin.gz``, ``.ulg.gz``, ``.csv.gz``): it is decompressed in memory
 (``read_recording_bytes``).
 
 The form itself, a ``Recording`` of one ``MessageTable`` per MAVLink message type, and the file
-helpers live in ``companion.columnar``, below the readers (so no reader imports this module,
+helpers live in ``companion.recordings.columnar``, below the readers (so no reader imports this module,
 which imports them); they are re-exported here, where the tools import them from.
 """
 
@@ -15,7 +15,9 @@ from __future__ import annotations
 from collections.abc import Collection, Mapping
 from pathlib import Path
 
-from companion.columnar import (
+from companion.errors import RecordingError
+from companion.progress import Stages
+from companion.recordings.columnar import (
     GZIP_SUFFIX,
     MessageTable,
     Recording,
@@ -27,8 +29,6 @@ from companion.columnar import (
     recording_stem,
     recording_suffix,
 )
-from companion.errors import RecordingError
-from companion.progress import Stages
 
 __all__ = ["GZIP_SUFFIX", "MessageTable", "Recording", "gunzip", "is_gzip_path", "load_recording", "open_recording",
            "read_recording_bytes", "recording_name", "recording_stem", "recording_suffix"]
@@ -53,23 +53,23 @@ def load_recording(path: str | Path, *, sensor_config: str | Path | None = None,
     if sensor_config is not None or suffix == ".csv":
         if sensor_config is None:
             raise RecordingError(f"{p.name}: a CSV needs --sensor-config (a column map in configs/sensors/)")
-        from companion.importers.csv_columns import STAGES as CSV_STAGES
-        from companion.importers.csv_columns import read_csv
+        from companion.recordings.importers.csv_columns import STAGES as CSV_STAGES
+        from companion.recordings.importers.csv_columns import read_csv
 
         with Stages(progress, f"importing {p.name}", len(CSV_STAGES)) as done:
             return read_csv(p, sensor_config, progress=done)
     if suffix == ".bin":
-        from companion.importers.dataflash import STAGES as BIN_STAGES
-        from companion.importers.dataflash import read_dataflash
+        from companion.recordings.importers.dataflash import STAGES as BIN_STAGES
+        from companion.recordings.importers.dataflash import read_dataflash
 
         with Stages(progress, f"importing {p.name}", len(BIN_STAGES)) as done:
             return read_dataflash(p, progress=done)
     if suffix == ".ulg":
-        from companion.importers.ulog import STAGES as ULOG_STAGES
-        from companion.importers.ulog import read_ulog
+        from companion.recordings.importers.ulog import STAGES as ULOG_STAGES
+        from companion.recordings.importers.ulog import read_ulog
 
         with Stages(progress, f"importing {p.name}", len(ULOG_STAGES)) as done:
             return read_ulog(p, progress=done)
-    from companion.tlog_reader import read_tlog
+    from companion.recordings.tlog_reader import read_tlog
 
     return read_tlog(p, progress=progress, fields=fields)

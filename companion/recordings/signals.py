@@ -42,9 +42,10 @@ from functools import cached_property
 
 import numpy as np
 
-from companion.columnar import MessageTable, Recording, vehicle_sysid
 from companion.mavlink_ids import COMPANION_COMPONENT, DOWNWARD
-from companion.profiles import (
+from companion.recordings.columnar import MessageTable, Recording, vehicle_sysid
+from companion.rotation import quaternions_to_euler
+from companion.step.profiles import (
     FLOW_MESSAGE,
     GYRO_MESSAGES,
     INT16_CLIP,
@@ -54,7 +55,6 @@ from companion.profiles import (
     accel_m_s2,
     flow_columns,
 )
-from companion.rotation import quaternions_to_euler
 
 
 def stable_order(keys: np.ndarray) -> np.ndarray:

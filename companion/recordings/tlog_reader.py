@@ -52,8 +52,8 @@ from typing import Any
 import numpy as np
 
 from companion import native
-from companion.columnar import LazyColumns, MessageTable, Recording, is_gzip_path, read_recording_bytes
 from companion.errors import RecordingError
+from companion.recordings.columnar import LazyColumns, MessageTable, Recording, is_gzip_path, read_recording_bytes
 
 STX_V1 = 0xFE
 STX_V2 = 0xFD

@@ -1,7 +1,7 @@
 """Write MAVLink packets to a .tlog (the MAVProxy / Mission Planner layout).
 
 Each record is an 8-byte big-endian unsigned UNIX time in microseconds followed by the raw
-packet, exactly what ``companion.tlog_reader.read_tlog`` and pymavlink's
+packet, exactly what ``companion.recordings.tlog_reader.read_tlog`` and pymavlink's
 ``mavutil.mavlink_connection(path)`` read back.
 
     with TlogWriter("flight.tlog") as log:

@@ -12,7 +12,7 @@ scenarios drive; replay runs the column form of the same step over a whole recor
     out = core.on_flow(frame)      # one flow frame (profiles.FlowColumns of scalars) -> StepOutput
 
 A step has three parts, each run on one frame (the live loop, the scenarios) and over whole
-columns (replay). Each rule is written once, in ``companion.rules`` (the gates, the spike, the
+columns (replay). Each rule is written once, in ``companion.step.rules`` (the gates, the spike, the
 repeat test, the gyro scan, the cross-frame checks' bounds, what a held or disengaged frame does
 to the PI), and both forms call it; where a sequential state makes the column form a second
 algorithm (the gyro scan over all frames at once, the PI's linear stretches, the repeat walk),
@@ -79,11 +79,12 @@ from typing import Any
 
 import numpy as np
 
-from companion import native, rules
+from companion import native
 from companion.config import Config
-from companion.controller import PiController, PiState, _axis
-from companion.estimator import KalmanSettings, VelocityKalman, VelocitySensor, scene_rate, velocity_from_flow
-from companion.profiles import FlowColumns, Profile
+from companion.step import rules
+from companion.step.controller import PiController, PiState, _axis
+from companion.step.estimator import KalmanSettings, VelocityKalman, VelocitySensor, scene_rate, velocity_from_flow
+from companion.step.profiles import FlowColumns, Profile
 
 #: gyro samples the live core keeps (the newest received)
 GYRO_HISTORY = 32
@@ -124,7 +125,7 @@ CAUSE_CODES: tuple[HoldCause, ...] = (
     HoldCause.FLOW_SPIKE, HoldCause.DISENGAGED, HoldCause.VELOCITY_JUMP, HoldCause.FLOW_FROZEN,
     HoldCause.GYRO_FROZEN)
 _CODE = {c: i for i, c in enumerate(CAUSE_CODES)}
-#: the causes only the live session decides (``companion.session``: the link, the loop's own
+#: the causes only the live session decides (``companion.mavlink.session``: the link, the loop's own
 #: timing, the flow's age on the caller's clock); no step returns them
 SESSION_CAUSES = (HoldCause.FLOW_STALE, HoldCause.LINK, HoldCause.COMPANION_STALLED, HoldCause.BACKLOG)
 #: the causes found by comparing a frame with the ones before it (``Plausibility``)
@@ -418,7 +419,7 @@ GATE_CAUSES = CAUSE_CODES[1:8]
 def _gates(time_s: Any, scene_x: Any, scene_y: Any, quality: Any, gyro_found: Any, gyro_x_rad_s: Any,
            gyro_y_rad_s: Any, range_found: Any, range_time_s: Any, range_m: Any, p: StepParams) -> Iterator[Any]:
     """Each gate of ``GATE_CAUSES`` in turn (True: the frame fails it), one frame or columns:
-    ``companion.rules``' predicates, evaluated lazily so that one frame stops at the first."""
+    ``companion.step.rules``' predicates, evaluated lazily so that one frame stops at the first."""
     yield rules.flow_invalid(time_s, scene_x, scene_y)
     yield rules.quality_zero(quality)
     yield gyro_found == False  # noqa: E712 (arrays too)
@@ -1140,7 +1141,7 @@ class CompanionCore:
         """Whether ``on_flow`` would take ``f`` as a repeat (and step nothing)."""
         return self._is_repeat(f, self.payload(f))
 
-    # -- what a live session asks of the core (companion.session) ------------------------------
+    # -- what a live session asks of the core (companion.mavlink.session) ------------------------------
 
     @property
     def last_frame_time_s(self) -> float | None:

@@ -3,7 +3,7 @@
     V_x = (-omega_y - dX_k Q / T) A        V_y = (+omega_x - dY_k Q / T) A
 
 ``Omega = dphi / T`` is the scene-angle rate over the frame in the paper's convention (see
-``companion.profiles``), ``omega_x``, ``omega_y`` the roll- and pitch-rate gyro (rad/s, body
+``companion.step.profiles``), ``omega_x``, ``omega_y`` the roll- and pitch-rate gyro (rad/s, body
 FRD) time-aligned to the frame, ``A`` the range to the ground (m).
 """
 
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.rules import covered_span, spacing
+from companion.step.rules import covered_span, spacing
 
 
 def velocity_from_flow(scene_rate_x_rad_s: Any, scene_rate_y_rad_s: Any, gyro_x_rad_s: Any,
@@ -45,7 +45,7 @@ def scene_rate_scalar(scene: float, increment: bool, integration_s: float, frame
 
 
 def frame_spacing(prev_time_s: float | None, time_s: float, nominal_s: float) -> float:
-    """The time a flow frame's counts cover (``companion.rules.spacing``): the spacing from the
+    """The time a flow frame's counts cover (``companion.step.rules.spacing``): the spacing from the
     previous frame when it is plausible (0 < dt <= 5 frames), else the nominal frame period
     (first frame, reboot, gap)."""
     if prev_time_s is None:

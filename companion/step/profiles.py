@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 from companion.errors import RecordingError
-from companion.importers.common import GRAVITY_M_S2
-from companion.recording import Recording
+from companion.recordings.importers.common import GRAVITY_M_S2
+from companion.recordings.load import Recording
 
 
 class Profile(enum.StrEnum):
@@ -56,7 +56,7 @@ def accel_m_s2(name: str, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
     """A gyro message's accelerometer fields (scalars or arrays) in m/s^2, body FRD; NaN on all
     three where an int16 field has clipped (the specific force is unknown) or a value is not
     finite. The one conversion of the live loop (``inbound.MessageRouter``) and of recordings
-    (``companion.signals``). Whether a vehicle has an accelerometer at all is the estimator's
+    (``companion.recordings.signals``). Whether a vehicle has an accelerometer at all is the estimator's
     rule (``estimator.VelocityKalman.on_accel``: the (0, 0, -1 g) placeholder)."""
     k = ACCEL_M_S2[name]
     fx, fy, fz = (np.asarray(v, dtype=float) for v in (x, y, z))
@@ -69,7 +69,7 @@ def accel_m_s2(name: str, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
         return float(out[0]), float(out[1]), float(out[2])
     return out[0], out[1], out[2]
 #: each message's own time field (CONVENTIONS.md), the one time-field rule of the live loop
-#: (``inbound``) and of recordings (``companion.signals``): (field, factor, scale), the time in s
+#: (``inbound``) and of recordings (``companion.recordings.signals``): (field, factor, scale), the time in s
 #: is ``value * factor * scale``. A gyro's time goes through whole microseconds (SCALED_IMU's
 #: ``time_boot_ms`` x 1000), so that one instant has one time whichever gyro message told it
 #: (``ms * 1e-3`` and ``us * 1e-6`` differ in the last bit for 2 in 5 instants). The flow

@@ -2,9 +2,9 @@
 
 Every function here takes Python floats, numpy scalars or equal-length arrays and uses only
 operators (``+ - * <= & | ==``), ``abs`` and numpy ufuncs that take scalars, so one definition
-serves the live loop's per-frame step (``companion.core.CompanionCore``, the scenarios),
+serves the live loop's per-frame step (``companion.step.core.CompanionCore``, the scenarios),
 replay's column form (``core.gate_frames``, ``core.repeat_mask``, ``core.plausibility_columns``,
-...) and, compiled by numba, the fast simulator's kernel (``simvehicle.fastsim``). On arrays the
+...) and, compiled by numba, the fast simulator's kernel (``simvehicle.engines.fastsim``). On arrays the
 caller holds the ``np.errstate``. Where a rule has state across frames (the PI integral, the
 tilt filter, the cross-frame checks) the state lives in ``core``; the rule it applies at each
 frame is here.

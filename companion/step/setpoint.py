@@ -2,7 +2,7 @@
 setpoint is held for ``companion.setpoint_timeout_s`` after its last refresh, then ramped
 linearly back to the base setpoint (``--setpoint``, or zero) over another timeout.
 
-Its own module, below ``companion.live`` and ``companion.replay`` (issue 13: replay imported it
+Its own module, below ``companion.mavlink.live`` and ``companion.tools.replay`` (issue 13: replay imported it
 from the live loop, sockets and all).
 """
 

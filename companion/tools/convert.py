@@ -1,6 +1,6 @@
 """Rewrite a .tlog's flow messages from one sensor profile's convention to another's.
 
-    python -m companion.convert IN.tlog OUT.tlog --to ardupilot [--from paper] [--config FILE]
+    python -m companion.tools.convert IN.tlog OUT.tlog --to ardupilot [--from paper] [--config FILE]
 
 (``IN`` may be a .tlog.gz; ``OUT`` is written uncompressed.)
 
@@ -41,12 +41,12 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion.config import Config, load_config
 from companion.errors import ExitCode, FlowholdError, RecordingError
-from companion.estimator import frame_spacing
-from companion.inbound import gyro_time_s
-from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FieldView, Profile, detect_profile, flow_columns
-from companion.recording import load_recording, read_recording_bytes
-from companion.rules import covered_span, gyro_scan
-from companion.tlog_writer import TlogWriter, mav_encoder
+from companion.mavlink.inbound import gyro_time_s
+from companion.recordings.load import load_recording, read_recording_bytes
+from companion.recordings.tlog_writer import TlogWriter, mav_encoder
+from companion.step.estimator import frame_spacing
+from companion.step.profiles import FLOW_MESSAGE, GYRO_MESSAGES, FieldView, Profile, detect_profile, flow_columns
+from companion.step.rules import covered_span, gyro_scan
 
 _HEADER = struct.Struct(">Q")
 
@@ -184,7 +184,7 @@ def convert_tlog(src_path: str | Path, dst_path: str | Path, *, src: Profile, ds
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m companion.convert", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m companion.tools.convert", description=__doc__.splitlines()[0])
     ap.add_argument("recording", help="input .tlog (or .tlog.gz)")
     ap.add_argument("out", help="output .tlog")
     ap.add_argument("--from", dest="src", choices=[p.value for p in Profile],

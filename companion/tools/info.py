@@ -19,11 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from companion import profiles
 from companion.errors import FlowholdError, RecordingError, check_output, writing
 from companion.mavlink_ids import DOWNWARD
-from companion.recording import MessageTable, Recording, load_recording
-from companion.tlog_writer import SIM_CLOCK_TEXT
+from companion.recordings.load import MessageTable, Recording, load_recording
+from companion.recordings.tlog_writer import SIM_CLOCK_TEXT
+from companion.step import profiles
 
 #: an interval longer than this many times the stream's median interval is a gap
 GAP_FACTOR = 3.0

@@ -2,7 +2,7 @@
 ``Figure`` drawn to a file: no backend chosen, no global matplotlib state changed).
 
 It plots any result with the replay's columns (``PlottedReplay``, which ``replay.ReplayResult``
-is), so this module does not import ``companion.replay``, whose ``--plot`` imports it (issue 13:
+is), so this module does not import ``companion.tools.replay``, whose ``--plot`` imports it (issue 13:
 no import cycle); it is imported only when a plot is asked for (matplotlib's start-up).
 """
 
@@ -14,12 +14,12 @@ from typing import Protocol
 import numpy as np
 from matplotlib.figure import Figure
 
-from companion.core import GyroSource
-from companion.profiles import Profile
+from companion.step.core import GyroSource
+from companion.step.profiles import Profile
 
 
 class PlottedReplay(Protocol):
-    """What the figure reads of a replay (``companion.replay.ReplayResult``)."""
+    """What the figure reads of a replay (``companion.tools.replay.ReplayResult``)."""
 
     recording: str
     profile: Profile

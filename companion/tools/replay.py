@@ -4,8 +4,8 @@
                                          [--gyro {auto,imu,flow}] [--estimator {auto,eq15,tilt,kf}]
 
 The live code path over the recorded messages, fast: the recording is read into columns
-(``companion.recording.load_recording``), the vehicle's signals taken from them by
-``companion.signals`` (which sender, which time field, which units, every gyro message as
+(``companion.recordings.load.load_recording``), the vehicle's signals taken from them by
+``companion.recordings.signals`` (which sender, which time field, which units, every gyro message as
 received), the live core's alignment rules are applied to whole
 columns (``core.align_gyro_columns``, ``core.latest_before``, ``core.repeat_mask``: only the
 gyro, range, attitude and heartbeat messages received *before* each flow message count, as in
@@ -56,7 +56,39 @@ import numpy as np
 
 from companion import native
 from companion.config import Config, load_config
-from companion.core import (
+from companion.errors import RecordingError, UsageError, check_output, writing
+from companion.mavlink.inbound import MessageRouter
+from companion.mavlink_ids import (
+    BODY_FRAMES,
+    COMPANION_COMPONENT,
+    GUIDED_NOGPS,
+    MAV_AUTOPILOT_ARDUPILOTMEGA,
+    MAV_AUTOPILOT_INVALID,
+    MAV_FRAME_LOCAL_NED,
+    MAV_MODE_FLAG_SAFETY_ARMED,
+    NOT_VEHICLE_TYPES,
+)
+from companion.recordings.load import (
+    MessageTable,
+    Recording,
+    is_gzip_path,
+    load_recording,
+    read_recording_bytes,
+    recording_name,
+)
+from companion.recordings.signals import (
+    companion_commands,
+    companion_table,
+    downward_range,
+    gyro_as_received,
+    time_ms,
+    vehicle_attitude,
+    vehicle_flow,
+    vehicle_table,
+)
+from companion.recordings.signals import stable_order as _stable_order
+from companion.recordings.signals import time_s as message_time_s
+from companion.step.core import (
     CAUSE_CODES,
     FILTER_RESET,
     CompanionCore,
@@ -83,42 +115,10 @@ from companion.core import (
     repeat_window,
     run_control,
 )
-from companion.csv_format import iter_rows
-from companion.errors import RecordingError, UsageError, check_output, writing
-from companion.inbound import MessageRouter
-from companion.mavlink_ids import (
-    BODY_FRAMES,
-    COMPANION_COMPONENT,
-    GUIDED_NOGPS,
-    MAV_AUTOPILOT_ARDUPILOTMEGA,
-    MAV_AUTOPILOT_INVALID,
-    MAV_FRAME_LOCAL_NED,
-    MAV_MODE_FLAG_SAFETY_ARMED,
-    NOT_VEHICLE_TYPES,
-)
-from companion.profiles import FLOW_MESSAGE, FlowColumns, Profile, detect_profile
-from companion.recording import (
-    MessageTable,
-    Recording,
-    is_gzip_path,
-    load_recording,
-    read_recording_bytes,
-    recording_name,
-)
-from companion.rules import clip_speed, covered_span
-from companion.setpoint import decayed_setpoint
-from companion.signals import (
-    companion_commands,
-    companion_table,
-    downward_range,
-    gyro_as_received,
-    time_ms,
-    vehicle_attitude,
-    vehicle_flow,
-    vehicle_table,
-)
-from companion.signals import stable_order as _stable_order
-from companion.signals import time_s as message_time_s
+from companion.step.profiles import FLOW_MESSAGE, FlowColumns, Profile, detect_profile
+from companion.step.rules import clip_speed, covered_span
+from companion.step.setpoint import decayed_setpoint
+from companion.tools.csv_format import iter_rows
 
 #: truth is interpolated only between LOCAL_POSITION_NED samples at most this far apart (s)
 TRUTH_MAX_GAP_S = 0.25
@@ -657,7 +657,7 @@ def _csv_formats(result: ReplayResult) -> tuple[list[str], list[str]]:
 def write_csv(result: ReplayResult, path: str | Path, *, progress: bool = False) -> list[str]:
     """Write the per-frame CSV (``CSV_COLUMNS`` present in the result; 9 significant digits, 12
     for times; NaN as ``nan``): the text of Python's ``%`` formatting, produced compiled or
-    vectorised (``companion.csv_format.iter_rows``) and written piece by piece. ``progress``: a
+    vectorised (``companion.tools.csv_format.iter_rows``) and written piece by piece. ``progress``: a
     bar on stderr for long results.
     Returns the columns written."""
     names, fmts = _csv_formats(result)
@@ -762,7 +762,7 @@ def run_cli(args: argparse.Namespace) -> int:
             print(f"estimate - LOCAL_POSITION_NED (body axes), RMS over the engaged frames: "
                   f"x {e[0]:.4f} m/s, y {e[1]:.4f} m/s", file=err)
     if args.plot:
-        from companion.replay_plot import plot_replay
+        from companion.tools.plot import plot_replay
 
         with writing("--plot", args.plot):
             plot_replay(result, args.plot)

@@ -24,22 +24,22 @@ do not (``T`` the frame period, ``tau`` the time into the frame):
   constant force), so windows on the reference's 1 ms grid agree with it.
 
 What is modelled, exactly. The vehicle: everything the reference simulator
-(``simvehicle.sim.Simulator``, RK4 at 1 ms) does per frame: the effects ``MODELLED_EFFECTS``
+(``simvehicle.model.sim.Simulator``, RK4 at 1 ms) does per frame: the effects ``MODELLED_EFFECTS``
 (every effect the config has today), turbulence, gyro and range noise drawn from each flight's
-own seeded Generator in the reference's order. The companion: ``companion.core.CompanionCore``'s
+own seeded Generator in the reference's order. The companion: ``companion.step.core.CompanionCore``'s
 step for the ``paper`` profile flying eq. 15 unfiltered on the IMU gyro (``gyro_source`` ``imu``
 or ``auto``, ``velocity_estimator`` ``eq15`` or ``auto``), always engaged, from the companion's
-own source compiled: the setpoint clip (``companion.rules.clip_speed``, ``max_speed_m_s``); of
+own source compiled: the setpoint clip (``companion.step.rules.clip_speed``, ``max_speed_m_s``); of
 the per-frame gates (``core.GATE_CAUSES``) the two a simulated frame can fail, the gyro saturated
 or not finite (``rules.gyro_invalid``) and the range outside the sensor's limits
 (``rules.range_invalid``), then the spike gate (``rules.scene_spike``, ``max_flow_rate_rad_s``);
-eq. 15 (``companion.estimator.velocity_from_flow``) over the frame spacing
-(``estimator.frame_spacing_array``); the PI law (``companion.controller._axis``, anti-windup
+eq. 15 (``companion.step.estimator.velocity_from_flow``) over the frame spacing
+(``estimator.frame_spacing_array``); the PI law (``companion.step.controller._axis``, anti-windup
 included), its integrator frozen on a held frame. A held frame is ``hold`` 1 (the cause is not
 kept). The other gates cannot fail here: every flow frame is finite, of quality 255, new and in
 order (no repeats, no reboot), and finds a gyro sample at its own time and a range of its own
 frame (so a ``max_gyro_skew_s`` or ``range_timeout_s`` >= 0 never holds one). With
-``mavlink_quantization=True`` the companion sees what ``simvehicle.scenarios.fly`` feeds it
+``mavlink_quantization=True`` the companion sees what ``simvehicle.engines.scenarios.fly`` feeds it
 through MAVLink (gyro in integer mrad/s, range in integer cm, times in integer µs), so the two
 agree frame for frame: estimates, commands and holds, for each option value the engine flies and
 with the gates firing (tests/test_fastsim.py).
@@ -49,7 +49,7 @@ sweep`` prints as one line) rather than ignored: ``velocity_estimator = "tilt"``
 ``gyro_source = "flow"`` (the flow message's own body rate), a negative ``max_gyro_skew_s`` or
 ``range_timeout_s``, an effect outside ``MODELLED_EFFECTS``, and any key the engine does not read
 (``FIELDS_READ``; a new estimator option, say) set to anything but ``configs/paper.toml``'s
-value. Not modelled and not a config option: the cross-frame checks (``companion.core.
+value. Not modelled and not a config option: the cross-frame checks (``companion.step.core.
 Plausibility``: velocity jump, frozen flow, frozen gyro). They hold a frame only on a sensor
 fault (a glitch, a stream that stops changing), which none of the modelled effects produces; the
 frame-for-frame agreement with ``scenarios.fly`` shows they did not fire there. A flight where
@@ -78,16 +78,16 @@ from typing import Any
 
 import numpy as np
 
-from companion import rules
 from companion.config import Config, load_config
-from companion.controller import _axis as _pi_axis_py
-from companion.core import CompanionCore
 from companion.errors import ConfigError
-from companion.estimator import frame_spacing_array
-from companion.estimator import velocity_from_flow as _velocity_from_flow_py
-from companion.profiles import FlowColumns
-from simvehicle.scenarios import Run, Scenario
-from simvehicle.sim import Simulator, Turbulence
+from companion.step import rules
+from companion.step.controller import _axis as _pi_axis_py
+from companion.step.core import CompanionCore
+from companion.step.estimator import frame_spacing_array
+from companion.step.estimator import velocity_from_flow as _velocity_from_flow_py
+from companion.step.profiles import FlowColumns
+from simvehicle.engines.scenarios import Run, Scenario
+from simvehicle.model.sim import Simulator, Turbulence
 
 try:  # numba turns the frame loop into machine code; without it the same loop runs in Python
     import numba as _numba
@@ -103,7 +103,7 @@ def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
     return _numba.njit(cache=True, nogil=True)(fn)
 
 
-#: the companion's own eq. 15, per-axis PI step and step rules (``companion.rules``), compiled:
+#: the companion's own eq. 15, per-axis PI step and step rules (``companion.step.rules``), compiled:
 #: the same source as the live loop's and replay's
 _velocity_from_flow = _jit(_velocity_from_flow_py)
 _pi_axis = _jit(_pi_axis_py)
@@ -132,7 +132,7 @@ COLUMNS = ("t_s", "vx_m_s", "vy_m_s", "x_m", "y_m", "roll_rad", "pitch_rad", "ro
            "pitch_rate_rad_s", "flow_x_counts", "flow_y_counts", "gyro_x_rad_s", "gyro_y_rad_s", "range_m",
            "est_vx_m_s", "est_vy_m_s", "vx_set_m_s", "vy_set_m_s", "roll_cmd_rad", "pitch_cmd_rad", "hold",
            "phi_x_rad", "phi_y_rad", "altitude_m")
-"""Per-frame columns of a flight: those of ``simvehicle.scenarios.Run`` plus the true scene
+"""Per-frame columns of a flight: those of ``simvehicle.engines.scenarios.Run`` plus the true scene
 angles and altitude. ``gyro_*`` and ``range_m`` are the sensors' outputs before MAVLink
 encoding, as ``fly`` records them; ``*_cmd_rad`` the command computed at the frame (or the
 imposed one, see ``commands``); ``est_*`` NaN on frames the companion held."""
@@ -325,7 +325,7 @@ def _frames(f0, f1, T, tt, dtc, P, Mn, MT, Md, WvT, WpT, WpD, eT, ePT, Pd0, wq, 
                 crng = cur * 0.01
                 if not (p[P_RANGE_MIN_CM] <= cur <= p[P_RANGE_MAX_CM]):
                     crng = math.nan
-            # ---- the companion's step (companion.core.CompanionCore.on_flow)
+            # ---- the companion's step (companion.step.core.CompanionCore.on_flow)
             isp = i if sp_sched.shape[0] > 1 else 0
             spx = sp_sched[isp, f, 0]
             spy = sp_sched[isp, f, 1]
@@ -401,7 +401,7 @@ def _pi_batch_kernel(integral, err, dt, kp, ki, limit, out_integral, out_effort)
 def pi_step_batch(integral_x_m: Any, integral_y_m: Any, err_x_m_s: Any, err_y_m_s: Any, dt_s: Any, *,
                   kp_rad_per_m_s: Any, ki_rad_per_m: Any, limit_rad: Any
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``companion.controller.pi_step`` over arrays of flights (the kernel's own compiled step).
+    """``companion.step.controller.pi_step`` over arrays of flights (the kernel's own compiled step).
 
     All arguments broadcast to one shape (N,); gains may differ per flight. Returns
     ``(integral_x_m, integral_y_m, roll_cmd_rad, pitch_cmd_rad)``, each (N,).
@@ -771,7 +771,7 @@ class BatchResult:
         return self.columns[key]
 
     def run(self, i: int) -> Run:
-        """Flight ``i`` as a ``simvehicle.scenarios.Run`` (``figures`` and ``plots`` take it)."""
+        """Flight ``i`` as a ``simvehicle.engines.scenarios.Run`` (``figures`` and ``plots`` take it)."""
         if not -len(self) <= i < len(self):
             raise IndexError(f"flight {i} of a batch of {len(self)}")
         return Run(self.name, {k: np.asarray(v[i]) for k, v in self.columns.items()},
@@ -802,7 +802,7 @@ def simulate_batch(cfg: Config | Sequence[Config], n: int | None = None, *, dura
       (N, n_t, 2), instead of the PI's (open loop; the companion still estimates).
     - ``seeds``: the seed of each flight's ``numpy.random.default_rng`` (noise, turbulence);
       an int is used for every flight. Default 0, as ``scenarios.fly``.
-    - ``turbulence_sigma_n``, ``turbulence_tau_s``: ``simvehicle.sim.Turbulence`` per flight.
+    - ``turbulence_sigma_n``, ``turbulence_tau_s``: ``simvehicle.model.sim.Turbulence`` per flight.
 
     ``mavlink_quantization``: the companion sees the gyro in integer mrad/s, the range in integer
     cm and times in integer µs, as through ``scenarios.fly``'s MAVLink path. ``columns``: keep
@@ -990,8 +990,8 @@ def reference_run(cfg: Config, *, duration_s: float, setpoint: Any = None, force
                   altitude: Callable[[float], float] | None = None, commands: np.ndarray | None = None,
                   turbulence_sigma_n: float = 0.0, turbulence_tau_s: float = 1.0, seed: int = 0,
                   name: str = "reference") -> Run:
-    """One flight of ``simvehicle.sim.Simulator`` (RK4, ``sim.substeps_per_frame`` per frame)
-    closed by ``companion.core.CompanionCore``, fed the sensor samples directly (no MAVLink
+    """One flight of ``simvehicle.model.sim.Simulator`` (RK4, ``sim.substeps_per_frame`` per frame)
+    closed by ``companion.step.core.CompanionCore``, fed the sensor samples directly (no MAVLink
     quantization). Inputs as in ``simulate_batch`` for one flight; same columns."""
     T = cfg.flow_sensor.frame_period_s
     n_frames = int(round(duration_s / T))

@@ -7,15 +7,15 @@ One seed in, one recording and its truth out::
     paths = write_flight(spec, flight, folder, "gen_0007")   # .tlog, nominal .toml, .truth.json
     result = score(truth, report)          # a diagnose JSON report against the truth
 
-Independence. Nothing here comes from ``simvehicle/sim.py``, ``plant.py``, ``flow_sensor.py`` or
+Independence. Nothing here comes from ``simvehicle/model/sim.py``, ``plant.py``, ``flow_sensor.py`` or
 ``fastsim.py``: the vehicle and the sensors are written again from CONVENTIONS.md, with another
 integrator (Heun's explicit trapezoid, second order, at ``integrator_hz`` >= 1 kHz, every
 sub-interval split exactly at the command switches and at the sample instants), and their own
 noise code. A modelling choice our simulator and our finder share therefore does not hide here
 unless this module makes it too. What is *not* independent, on purpose: the companion that flies
-the loop (``companion.inbound.MessageRouter`` + ``companion.core.CompanionCore``, eq. 15 and the
+the loop (``companion.mavlink.inbound.MessageRouter`` + ``companion.step.core.CompanionCore``, eq. 15 and the
 PI of Table VI: that is the behaviour under test) and the file layout
-(``companion.tlog_writer.TlogWriter``, pymavlink's ``ardupilotmega`` encoder).
+(``companion.recordings.tlog_writer.TlogWriter``, pymavlink's ``ardupilotmega`` encoder).
 
 The model (CONVENTIONS.md, per axis; x pairs with pitch ``th`` and pitch rate ``q``, y with roll
 ``ph`` and roll rate ``p``):
@@ -58,12 +58,12 @@ import numpy as np
 from numba import njit
 
 from companion.config import CONFIG_DIR, load_config
-from companion.core import CompanionCore
-from companion.inbound import MessageRouter
+from companion.mavlink.inbound import MessageRouter
 from companion.mavlink_ids import COMPANION_COMPONENT
-from companion.profiles import Profile
+from companion.recordings.tlog_writer import TlogWriter, mav_encoder
 from companion.rotation import euler_to_quaternion
-from companion.tlog_writer import TlogWriter, mav_encoder
+from companion.step.core import CompanionCore
+from companion.step.profiles import Profile
 
 GENERATOR_VERSION = 3
 
@@ -906,7 +906,7 @@ def _set_key(text: str, section: str, key: str, value: str) -> str:
 def nominal_config_text(spec: FlightSpec) -> str:
     """The config the user believes: the base file with the vehicle's nominal values."""
     text = (CONFIG_DIR.parent / spec.sensors.base_config).read_text()
-    head = (f"# Nominal model of generated recording seed {spec.seed} (simvehicle/flightgen.py), copied from "
+    head = (f"# Nominal model of generated recording seed {spec.seed} (simvehicle/engines/flightgen.py), copied from "
             f"{spec.sensors.base_config}\n# with the drawn airframe, attitude loop, frame rate and Q.\n")
     for section, key, value in (("airframe", "mass_kg", spec.vehicle.mass_kg),
                                 ("airframe", "omega_p_rad_s", spec.vehicle.omega_p_nominal),
@@ -993,7 +993,7 @@ def truth_of(spec: FlightSpec, flight: Flight) -> dict[str, Any]:
                 "start_sim_s": spec.effects["wind_force"]["start_s"], "end_sim_s": spec.effects["wind_force"]["end_s"],
                 "force_n": math.hypot(spec.effects["wind_force"]["fx"], spec.effects["wind_force"]["fy"])}
     return {
-        "generator": "simvehicle/flightgen.py",
+        "generator": "simvehicle/engines/flightgen.py",
         "generator_version": GENERATOR_VERSION,
         "seed": spec.seed,
         "profile": spec.sensors.profile,

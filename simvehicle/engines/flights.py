@@ -56,7 +56,7 @@ from companion.config import (
     replace_section,
     with_effects,
 )
-from simvehicle.scenarios import Run, Scenario, fly
+from simvehicle.engines.scenarios import Run, Scenario, fly
 
 #: rangefinder noise of the matrix flights (m, 1 sigma): a good ToF sensor indoors
 RANGE_NOISE_STD_M = 0.005

@@ -26,15 +26,15 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from companion import outbound
 from companion.config import Config
-from companion.core import CompanionCore
-from companion.inbound import MessageRouter
-from companion.profiles import Profile
-from companion.tlog_writer import SIM_EPOCH_S, TlogWriter
-from simvehicle import telemetry
-from simvehicle.flow_sensor import flow_frame
-from simvehicle.sim import FrameSample, Simulator, Turbulence
+from companion.mavlink import outbound
+from companion.mavlink.inbound import MessageRouter
+from companion.recordings.tlog_writer import SIM_EPOCH_S, TlogWriter
+from companion.step.core import CompanionCore
+from companion.step.profiles import Profile
+from simvehicle.model import telemetry
+from simvehicle.model.flow_sensor import flow_frame
+from simvehicle.model.sim import FrameSample, Simulator, Turbulence
 
 #: UNIX time of scenario time 0 in recordings (2026-01-01T00:00:00Z): headers = TLOG_EPOCH_S + t
 TLOG_EPOCH_S = SIM_EPOCH_S

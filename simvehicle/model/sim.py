@@ -20,10 +20,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.config import Config
-from simvehicle.flow_sensor import flow_frame
-from simvehicle.imu import accel_sample, gyro_sample, specific_force
-from simvehicle.plant import AXIS_SIGN, ZERO_AXIS, AxisState, PlantParams, axis_derivative, axis_rk4
-from simvehicle.rangefinder import range_reading
+from simvehicle.model.flow_sensor import flow_frame
+from simvehicle.model.imu import accel_sample, gyro_sample, specific_force
+from simvehicle.model.plant import AXIS_SIGN, ZERO_AXIS, AxisState, PlantParams, axis_derivative, axis_rk4
+from simvehicle.model.rangefinder import range_reading
 
 ForceFn = Callable[[float], tuple[float, float]]
 AltitudeFn = Callable[[float], float]

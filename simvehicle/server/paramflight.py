@@ -1,8 +1,8 @@
 """A flight of the simulated vehicle with parameters set by PARAM_SET while it flies (issue 16).
 
-The vehicle is ``simvehicle.server.Vehicle``, the logic ``python -m simvehicle serve`` runs, in
-process and in lockstep (no sockets, no clock); the companion is ``companion.inbound.MessageRouter``
-and ``companion.core.CompanionCore``, as ``simvehicle.scenarios.fly`` runs it; a ground station
+The vehicle is ``simvehicle.server.server.Vehicle``, the logic ``python -m simvehicle serve`` runs, in
+process and in lockstep (no sockets, no clock); the companion is ``companion.mavlink.inbound.MessageRouter``
+and ``companion.step.core.CompanionCore``, as ``simvehicle.engines.scenarios.fly`` runs it; a ground station
 (system 255, component 190) sends the scenario's velocity setpoints every frame and, at the given
 times, PARAM_SET messages, as a test engineer would over MAVLink: ``SIM_DRAG_B``,
 ``SIM_FLOW_SCALE_X``, ``SIM_WIND_FX`` ..., and the autopilot's own ``FLOW_FXSCALER``,
@@ -21,15 +21,15 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from companion import outbound
 from companion.config import Config
-from companion.core import CompanionCore
-from companion.inbound import MessageRouter
-from companion.profiles import Profile
-from companion.tlog_writer import TlogWriter
-from simvehicle.scenarios import TLOG_EPOCH_S, Scenario
-from simvehicle.server import StreamSchedule, Vehicle
-from simvehicle.telemetry import GUIDED_NOGPS
+from companion.mavlink import outbound
+from companion.mavlink.inbound import MessageRouter
+from companion.recordings.tlog_writer import TlogWriter
+from companion.step.core import CompanionCore
+from companion.step.profiles import Profile
+from simvehicle.engines.scenarios import TLOG_EPOCH_S, Scenario
+from simvehicle.model.telemetry import GUIDED_NOGPS
+from simvehicle.server.server import StreamSchedule, Vehicle
 
 GCS = (255, 190)
 

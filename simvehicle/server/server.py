@@ -1,7 +1,7 @@
 """The simulated vehicle over MAVLink/UDP: ``python -m simvehicle serve``.
 
 An ArduCopter-like quadrotor (CONVENTIONS.md, "The simulated vehicle") around the reference
-simulator (``simvehicle.sim.Simulator``, the physics) and ``simvehicle.telemetry`` (the message
+simulator (``simvehicle.model.sim.Simulator``, the physics) and ``simvehicle.model.telemetry`` (the message
 encoding), so the loop over UDP flies exactly what the in-process scenarios fly.
 
 Two layers, as STYLE.md asks (the network adapter wraps the model, never the reverse):
@@ -49,7 +49,6 @@ from typing import Any
 
 import numpy as np
 
-from companion import link
 from companion.config import (
     AttitudeDynamics,
     Config,
@@ -63,12 +62,11 @@ from companion.config import (
     with_effects,
 )
 from companion.errors import LinkError, RecordingError, UsageError, check_output, output_error
+from companion.mavlink import link
+from companion.mavlink.outbound import VELOCITY_TYPE_MASK
 from companion.mavlink_ids import COMPANION_COMPONENT, GUIDED_NOGPS
-from companion.outbound import VELOCITY_TYPE_MASK
-from companion.profiles import FLOW_MESSAGE, Profile, detect_profile
-from companion.recording import MessageTable, load_recording
-from companion.rotation import quaternion_to_euler
-from companion.signals import (
+from companion.recordings.load import MessageTable, load_recording
+from companion.recordings.signals import (
     Attitude,
     AttitudeCommand,
     companion_commands,
@@ -79,10 +77,12 @@ from companion.signals import (
     vehicle_flow,
     vehicle_table,
 )
-from companion.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S, TlogWriter
-from simvehicle import telemetry
-from simvehicle.scenarios import SCENARIOS, Run, Scenario
-from simvehicle.sim import FrameSample, Simulator, Turbulence
+from companion.recordings.tlog_writer import SIM_CLOCK_TEXT, SIM_EPOCH_S, TlogWriter
+from companion.rotation import quaternion_to_euler
+from companion.step.profiles import FLOW_MESSAGE, Profile, detect_profile
+from simvehicle.engines.scenarios import SCENARIOS, Run, Scenario
+from simvehicle.model import telemetry
+from simvehicle.model.sim import FrameSample, Simulator, Turbulence
 
 mav = link.mav
 
@@ -806,7 +806,7 @@ class Vehicle:
 
 #: bytes per UDP datagram when batching packets (below a typical 1500-byte MTU)
 MAX_DATAGRAM = 1400
-#: a received datagram longer than this is dropped unread (bytes; see companion.link)
+#: a received datagram longer than this is dropped unread (bytes; see companion.mavlink.link)
 MAX_DATAGRAM_IN = link.MAX_DATAGRAM_IN
 
 
@@ -1126,14 +1126,14 @@ class UdpVehicle:
 
 def recording_run(path: str | Path, *, name: str = "loop", config: Config | str | Path | None = None) -> Run:
     """The per-frame columns of a recording made by this vehicle (its ``--tlog``), in the
-    layout of ``simvehicle.scenarios.Run`` (so ``figures`` and ``plot_run`` apply).
+    layout of ``simvehicle.engines.scenarios.Run`` (so ``figures`` and ``plot_run`` apply).
 
     Frames are the vehicle's LOCAL_POSITION_NED (truth); the other columns are matched by
     their time fields: ATTITUDE, the gyro, the downward DISTANCE_SENSOR (the reading as sent), the
     flow message (counts in the paper's convention, ``dphi / Q`` rounded to whole counts, whatever
     the profile), the companion's VISION_SPEED_ESTIMATE (NaN while it holds) and
     POSITION_TARGET_LOCAL_NED. The signals, their sender (the vehicle: the most frequent flow
-    sender), time fields and units are ``companion.signals``' (replay's and diagnose's). The command of
+    sender), time fields and units are ``companion.recordings.signals``' (replay's and diagnose's). The command of
     frame k is the one that acted from frame k+1: the vehicle's ATTITUDE_TARGET there (the last
     frame takes the companion's SET_ATTITUDE_TARGET for it when there is one). Only the first
     boot is read when the recording holds a SIM_REBOOT.

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from simvehicle.scenarios import Pair, Run
+from simvehicle.engines.scenarios import Pair, Run
 
 
 def force_steps(force: Callable[[float], Pair], t_s: np.ndarray) -> list[tuple[float, float, float]]:

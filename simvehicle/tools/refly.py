@@ -2,9 +2,9 @@
 simulator, with the nominal model and with the fitted one, and put both beside the recording.
 
 The simulated vehicle flies in closed loop with the companion's control step (the fast engine,
-``simvehicle.fastsim``: eq. 15 and the PI of ``companion.controller``, compiled), driven by the
+``simvehicle.engines.fastsim``: eq. 15 and the PI of ``companion.step.controller``, compiled), driven by the
 recording's own velocity setpoints over each stretch the companion was in control (a segment of
-frames with commands, ``companion.diagnose.channels``), at the recording's height (its
+frames with commands, ``companion.diagnose.closed_loop.channels``), at the recording's height (its
 rangefinder), from rest. The two models are the config given (``fitted``: its ``[effects.*]``, as
 ``diagnose --model-out`` writes them) and the same config without its effects (``nominal``). A
 wind window of the fitted model is in recording time and is replayed at that time; it is a
@@ -20,7 +20,7 @@ the setpoint anyway): they show in the tilt the loop needs, which is why the com
 channel that judges a model.
 
 The RMS of simulation minus recording is taken on the held-out half of the flight
-(``companion.fitted_model.heldout_split_s``, the half the fit never saw) and on every frame of an
+(``companion.diagnose.fitted_model.heldout_split_s``, the half the fit never saw) and on every frame of an
 ``--also`` recording. Turbulence is not reproducible: ``unreproducible`` estimates the random force
 the recording saw from its own force balance and flies the fitted model with a random force of
 that size (and other sensor-noise seeds) to say how much of the remaining error it explains:
@@ -38,15 +38,15 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config, Effects, WindForce, load_config
-from companion.core import EstimatorOptions, GyroSource, VelocityEstimator
-from companion.diagnose.channels import FlightData, extract
+from companion.diagnose.closed_loop.channels import FlightData, extract
+from companion.diagnose.fitted_model import heldout_split_s
+from companion.diagnose.report_html import write_refly_html
 from companion.errors import RecordingError, check_output, writing
-from companion.fitted_model import heldout_split_s
 from companion.mavlink_ids import COMPANION_COMPONENT
-from companion.profiles import Profile
-from companion.recording import Recording, load_recording
-from companion.report_html import write_refly_html
-from simvehicle.fastsim import simulate_batch
+from companion.recordings.load import Recording, load_recording
+from companion.step.core import EstimatorOptions, GyroSource, VelocityEstimator
+from companion.step.profiles import Profile
+from simvehicle.engines.fastsim import simulate_batch
 
 #: (channel, unit) in the order reports list them; pitch_cmd and roll_cmd judge a model
 CHANNELS = (("pitch_cmd", "rad"), ("roll_cmd", "rad"), ("pitch", "rad"), ("roll", "rad"), ("flow_x", "rad/s"),

@@ -14,7 +14,7 @@ A sweep file is TOML; every key is checked and an unknown one is an error::
 
     title = "..."                       # optional, for the plot
     base_config = "../paper.toml"       # required: a full parameter set, relative to this file
-    scenarios = ["step", "gust"]        # required: closed-loop scenarios of simvehicle.scenarios
+    scenarios = ["step", "gust"]        # required: closed-loop scenarios of simvehicle.engines.scenarios
     seeds = [0, 1, 2]                   # optional: one flight per seed and grid point (default [0])
 
     [grid]                              # required: one axis per key, the cartesian product is flown
@@ -24,7 +24,7 @@ A sweep file is TOML; every key is checked and an unknown one is an error::
 
 Each grid point is a full ``Config`` built from the base file through ``companion.config`` (so a
 misspelt key or a meaningless value is the same error as in a config file). Every flight is
-flown on the fast engine (``simvehicle.fastsim``) with the companion fed through MAVLink
+flown on the fast engine (``simvehicle.engines.fastsim``) with the companion fed through MAVLink
 quantization, so a row's numbers are those ``python -m simvehicle scenario`` reports for that
 config. Output: ``DIR/sweep.csv``, one row per grid point and seed (the grid values, the seed,
 then ``<scenario>_<figure>_<axis>`` for every figure of merit of ``scenarios.figures`` and the
@@ -54,8 +54,8 @@ import numpy as np
 from companion.config import EFFECT_TYPES, Config, config_from_dict, read_toml
 from companion.errors import ConfigError, FlowholdError, UsageError, check_output, writing
 from companion.fleet.engine import Engine, TaskLost
-from simvehicle import fastsim
-from simvehicle.scenarios import SCENARIOS, figures
+from simvehicle.engines import fastsim
+from simvehicle.engines.scenarios import SCENARIOS, figures
 
 _KEYS = {"title", "base_config", "scenarios", "seeds", "grid"}
 #: the columns ``scenarios.figures`` reads, plus the hold flag

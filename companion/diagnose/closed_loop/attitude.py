@@ -25,7 +25,7 @@ import math
 import numpy as np
 from scipy import linalg, signal
 
-from companion.diagnose.channels import FlightData
+from companion.diagnose.closed_loop.channels import FlightData
 
 #: a run of at least this many lost (bridged) commands restarts the attitude simulation, and so
 #: does a single one across which the command jumps by more than ``RESTART_JUMP_RAD`` (a setpoint

@@ -11,12 +11,12 @@ interpolated; readings outside the sensor's own limits are invalid), the attitud
 * without it, the vehicle's ATTITUDE_TARGET at t_k (the target it is tracking then).
 
 The flow is turned into scene-angle increments in the paper's convention by the profile
-(``companion.profiles``): ``dphi_x``, ``dphi_y`` (rad) over the frame that ends at t_k.
+(``companion.step.profiles``): ``dphi_x``, ``dphi_y`` (rad) over the frame that ends at t_k.
 LOCAL_POSITION_NED is read for plots only (``truth_vx_m_s``), never for fitting.
 
 The signals, their sender (the vehicle: the most frequent flow sender; the companion: component
 191), time fields, units and gyro message (the vehicle's gyro as one sensor: the first of RAW_IMU,
-SCALED_IMU, HIGHRES_IMU it sent), come from ``companion.signals``, as replay's do.
+SCALED_IMU, HIGHRES_IMU it sent), come from ``companion.recordings.signals``, as replay's do.
 
 Frames are grouped into segments of contiguous valid frames (no gap longer than 1.5 frames, every
 channel valid, a command present). Times are seconds from the first record of the recording.
@@ -31,9 +31,8 @@ import numpy as np
 
 from companion.config import Config
 from companion.errors import RecordingError
-from companion.profiles import FLOW_MESSAGE, GYRO_MESSAGES, Profile, detect_profile, flow_columns
-from companion.recording import Recording
-from companion.signals import (
+from companion.recordings.load import Recording
+from companion.recordings.signals import (
     companion_commands,
     companion_table,
     downward_range,
@@ -43,7 +42,8 @@ from companion.signals import (
     vehicle_table,
     vehicle_targets,
 )
-from companion.signals import time_s as message_time_s
+from companion.recordings.signals import time_s as message_time_s
+from companion.step.profiles import FLOW_MESSAGE, GYRO_MESSAGES, Profile, detect_profile, flow_columns
 
 #: a segment shorter than this is not used (s)
 MIN_SEGMENT_S = 5.0

@@ -13,7 +13,7 @@ HTML page (``--report``: ``report.md``, ``report.html``), a summary on stdout.
 Method: docs/diagnose.md.
 
 Recordings without a commanded attitude (or given ``--sensor-config``) go to the sensor-only
-diagnosis (``companion.sensor_diagnose``).
+diagnosis (``companion.diagnose.sensor.api``).
 """
 
 from __future__ import annotations
@@ -24,16 +24,16 @@ import sys
 import time
 from pathlib import Path
 
-from companion import sensor_diagnose
 from companion.config import Config, load_config
-from companion.diagnose.channels import has_commands
-from companion.diagnose.diagnosis import STAGES, Diagnosis, diagnose
-from companion.diagnose.markdown import write_report
+from companion.diagnose.closed_loop.channels import has_commands
+from companion.diagnose.closed_loop.diagnosis import STAGES, Diagnosis, diagnose
+from companion.diagnose.closed_loop.markdown import write_report
+from companion.diagnose.fitted_model import fitted_findings, heldout_split_s, model_toml, write_model
+from companion.diagnose.report import Report
+from companion.diagnose.report_html import write_html_report
+from companion.diagnose.sensor import api as sensor_diagnose
 from companion.errors import UsageError, check_output, writing
-from companion.fitted_model import fitted_findings, heldout_split_s, model_toml, write_model
-from companion.recording import Recording, load_recording
-from companion.report import Report
-from companion.report_html import write_html_report
+from companion.recordings.load import Recording, load_recording
 
 __all__ = ["run_cli", "diagnose_recording", "summary"]
 
@@ -116,7 +116,7 @@ def run_cli(args: argparse.Namespace) -> int:
 
 def write_model_out(rec: Recording, cfg: Config, whole: Diagnosis, path: str | Path, *,
                     profile: str | None = None) -> Path:
-    """``--model-out``: the fitted model of ``companion.fitted_model``. The vehicle's properties are
+    """``--model-out``: the fitted model of ``companion.diagnose.fitted_model``. The vehicle's properties are
     fitted on the first half of the flight's usable frames (a second diagnosis of that half), the
     wind windows come from ``whole``; a flight too short to split is fitted whole."""
     t = whole.data.t_s

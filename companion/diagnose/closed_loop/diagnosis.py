@@ -1,7 +1,7 @@
 """The closed-loop diagnosis: recording -> channels -> effects chosen per group -> Report.
 
 ``diagnose(rec, cfg)`` runs the three groups (``groups``), fills the mismatch report of
-CONVENTIONS.md (``companion.report.Report``) and keeps everything the human report plots
+CONVENTIONS.md (``companion.diagnose.report.Report``) and keeps everything the human report plots
 (``Diagnosis``). Nothing here sees a simulator's settings: only the recording and the nominal
 parameter set.
 """
@@ -17,13 +17,13 @@ from typing import Any
 
 import numpy as np
 
-from companion.advice import actions, recorded_parameters
 from companion.config import Config
-from companion.diagnose.attitude import AttitudeProblem
-from companion.diagnose.channels import FlightData, extract
-from companion.diagnose.explain import explain
-from companion.diagnose.flowmodel import IDX, FlowProblem
-from companion.diagnose.groups import (
+from companion.diagnose.advice import actions, recorded_parameters
+from companion.diagnose.closed_loop.attitude import AttitudeProblem
+from companion.diagnose.closed_loop.channels import FlightData, extract
+from companion.diagnose.closed_loop.explain import explain
+from companion.diagnose.closed_loop.flowmodel import IDX, FlowProblem
+from companion.diagnose.closed_loop.groups import (
     GEOMETRY_EFFECTS,
     FlowGroupState,
     GyroProblem,
@@ -32,12 +32,12 @@ from companion.diagnose.groups import (
     gyro_group,
     lever_arm_observable,
 )
-from companion.diagnose.locate import Interval, conditions, effect_windows, excess_windows
-from companion.diagnose.select import Comparison, Group, ModelScore, Selector, Settings
-from companion.diagnose.sparse import SparseFit, Term, sparse_fit
+from companion.diagnose.closed_loop.locate import Interval, conditions, effect_windows, excess_windows
+from companion.diagnose.closed_loop.select import Comparison, Group, ModelScore, Selector, Settings
+from companion.diagnose.closed_loop.sparse import SparseFit, Term, sparse_fit
+from companion.diagnose.report import Finding, Fit, Report, Unexplained, Window
 from companion.errors import RecordingError
-from companion.recording import Recording
-from companion.report import Finding, Fit, Report, Unexplained, Window
+from companion.recordings.load import Recording
 
 #: an unexplained residual this many times its channel's noise means the model does not fit
 MISFIT_TIMES_NOISE = 3.0

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from companion.diagnose.channels import FlightData
+from companion.diagnose.closed_loop.channels import FlightData
 
 AXIS_SIGN = (-1.0, 1.0)
 #: parameter vector of the translational model (CONVENTIONS.md names)

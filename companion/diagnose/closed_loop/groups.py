@@ -21,12 +21,12 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
-from companion.diagnose.attitude import AttitudeProblem
-from companion.diagnose.channels import FlightData
-from companion.diagnose.flowmodel import AXIS_SIGN, IDX, NOMINAL, PARAMS, FlowProblem
-from companion.diagnose.select import Candidate, Group
-from companion.diagnose.sizes import threshold
-from companion.diagnose.wind import WindWindow, kernel_regressor, locate, null_pvalue
+from companion.diagnose.closed_loop.attitude import AttitudeProblem
+from companion.diagnose.closed_loop.channels import FlightData
+from companion.diagnose.closed_loop.flowmodel import AXIS_SIGN, IDX, NOMINAL, PARAMS, FlowProblem
+from companion.diagnose.closed_loop.select import Candidate, Group
+from companion.diagnose.closed_loop.sizes import threshold
+from companion.diagnose.closed_loop.wind import WindWindow, kernel_regressor, locate, null_pvalue
 
 #: rows this far either side of a wind window count as "around" it for its held-out improvement (s)
 AROUND_WINDOW_S = 5.0

@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from companion.diagnose.diagnosis import Diagnosis, GroupResult
-from companion.diagnose.flowmodel import IDX
+from companion.diagnose.closed_loop.diagnosis import Diagnosis, GroupResult
+from companion.diagnose.closed_loop.flowmodel import IDX
+from companion.diagnose.report import Finding
 from companion.errors import FlowholdError
-from companion.report import Finding
 
 MAX_POINTS = 20000
 COLORS = {"nominal": "0.6", "extended": "tab:blue", "recorded": "k"}

@@ -48,7 +48,7 @@ class Candidate:
     effect: str
     params: tuple[str, ...]
     physical: Callable[[dict[str, float]], str | None] | None = None
-    #: optional: why fitted values are too small to matter physically (``companion.diagnose.sizes``),
+    #: optional: why fitted values are too small to matter physically (``companion.diagnose.closed_loop.sizes``),
     #: or None when they matter
     matters: Callable[[dict[str, float]], str | None] | None = None
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.diagnose.flowmodel import ramp_integral
+from companion.diagnose.closed_loop.flowmodel import ramp_integral
 
 #: a window shorter than this is turbulence, not wind (s)
 MIN_WIND_S = 4.0

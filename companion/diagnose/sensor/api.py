@@ -35,7 +35,7 @@ the data cannot pin down is reported as NaN (null in JSON) with the reason in it
 Times in the report are seconds from the first record of the recording.
 
 
-The parts, one module each (``companion.sensor_diagnose`` re-exports their public names):
+The parts, one module each (``companion.diagnose.sensor.api`` re-exports their public names):
 
 - ``settings``: ``SensorDiagnosisSettings`` (units in the names) and the constants;
 - ``motions``: the documented motions of known recordings, by file name (data, not method);
@@ -51,11 +51,10 @@ The parts, one module each (``companion.sensor_diagnose`` re-exports their publi
 
 from __future__ import annotations
 
-from companion.importers.common import ReadGrid, find_read_grid
-from companion.sensor_diagnose.band import RotationBandFit, inband_velocity
-from companion.sensor_diagnose.bias import BiasFit, fit_gyro_bias, still_rows
-from companion.sensor_diagnose.diagnosis import SensorDiagnosis, analyse
-from companion.sensor_diagnose.legs import (
+from companion.diagnose.sensor.band import RotationBandFit, inband_velocity
+from companion.diagnose.sensor.bias import BiasFit, fit_gyro_bias, still_rows
+from companion.diagnose.sensor.diagnosis import SensorDiagnosis, analyse
+from companion.diagnose.sensor.legs import (
     AXIS_NAMES,
     CROSS_END_S,
     Displacement,
@@ -65,21 +64,22 @@ from companion.sensor_diagnose.legs import (
     find_legs,
     pattern_match,
 )
-from companion.sensor_diagnose.markdown import markdown_report, write_report_dir
-from companion.sensor_diagnose.motions import DOCUMENTED_MOTIONS, DocumentedMotion
-from companion.sensor_diagnose.numerics import window_integral, window_integrals
-from companion.sensor_diagnose.plots import plot_diagnosis
-from companion.sensor_diagnose.pool import PooledScale, pool_scales
-from companion.sensor_diagnose.run import diagnose_sensor, run_sensor_cli, run_sensor_diagnosis, summary_lines
-from companion.sensor_diagnose.series import SensorSeries, extract_series
-from companion.sensor_diagnose.settings import GRAVITY_M_S2, QUANT_RMS_COUNTS, SensorDiagnosisSettings
-from companion.sensor_diagnose.timing import (
+from companion.diagnose.sensor.markdown import markdown_report, write_report_dir
+from companion.diagnose.sensor.motions import DOCUMENTED_MOTIONS, DocumentedMotion
+from companion.diagnose.sensor.numerics import window_integral, window_integrals
+from companion.diagnose.sensor.plots import plot_diagnosis
+from companion.diagnose.sensor.pool import PooledScale, pool_scales
+from companion.diagnose.sensor.run import diagnose_sensor, run_sensor_cli, run_sensor_diagnosis, summary_lines
+from companion.diagnose.sensor.series import SensorSeries, extract_series
+from companion.diagnose.sensor.settings import GRAVITY_M_S2, QUANT_RMS_COUNTS, SensorDiagnosisSettings
+from companion.diagnose.sensor.timing import (
     TimingAnalysis,
     analyse_timing,
     merge_windows,
     range_finding,
     timing_findings,
 )
+from companion.recordings.importers.common import ReadGrid, find_read_grid
 
 __all__ = [
     "DOCUMENTED_MOTIONS", "DocumentedMotion", "SensorDiagnosisSettings", "SensorSeries", "extract_series",

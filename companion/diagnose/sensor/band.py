@@ -11,9 +11,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import signal
 
-from companion.sensor_diagnose.numerics import window_integral, window_integrals
-from companion.sensor_diagnose.series import SensorSeries
-from companion.sensor_diagnose.settings import GRAVITY_M_S2, QUANT_RMS_COUNTS, SensorDiagnosisSettings
+from companion.diagnose.sensor.numerics import window_integral, window_integrals
+from companion.diagnose.sensor.series import SensorSeries
+from companion.diagnose.sensor.settings import GRAVITY_M_S2, QUANT_RMS_COUNTS, SensorDiagnosisSettings
 
 
 def inband_velocity(series: SensorSeries, settings: SensorDiagnosisSettings,

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.sensor_diagnose.numerics import moving_mean, runs
-from companion.sensor_diagnose.settings import SensorDiagnosisSettings
+from companion.diagnose.sensor.numerics import moving_mean, runs
+from companion.diagnose.sensor.settings import SensorDiagnosisSettings
 
 
 def still_rows(t: np.ndarray, gyro: np.ndarray, cx: np.ndarray, cy: np.ndarray,

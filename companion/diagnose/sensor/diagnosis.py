@@ -9,15 +9,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.config import Config
-from companion.recording import Recording, recording_name
-from companion.report import Report
-from companion.sensor_diagnose.band import RotationBandFit
-from companion.sensor_diagnose.bias import BiasFit, fit_gyro_bias, still_rows
-from companion.sensor_diagnose.legs import Displacement, Leg, LegScaleFit, displacement_parts, find_legs
-from companion.sensor_diagnose.motions import DOCUMENTED_MOTIONS, DocumentedMotion
-from companion.sensor_diagnose.series import SensorSeries, extract_series
-from companion.sensor_diagnose.settings import SensorDiagnosisSettings
-from companion.sensor_diagnose.timing import TimingAnalysis, analyse_timing
+from companion.diagnose.report import Report
+from companion.diagnose.sensor.band import RotationBandFit
+from companion.diagnose.sensor.bias import BiasFit, fit_gyro_bias, still_rows
+from companion.diagnose.sensor.legs import Displacement, Leg, LegScaleFit, displacement_parts, find_legs
+from companion.diagnose.sensor.motions import DOCUMENTED_MOTIONS, DocumentedMotion
+from companion.diagnose.sensor.series import SensorSeries, extract_series
+from companion.diagnose.sensor.settings import SensorDiagnosisSettings
+from companion.diagnose.sensor.timing import TimingAnalysis, analyse_timing
+from companion.recordings.load import Recording, recording_name
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""The sensor-only diagnosis as a mismatch report (``companion.report.Report``, ``mode =
+"""The sensor-only diagnosis as a mismatch report (``companion.diagnose.report.Report``, ``mode =
 "sensor"``): one finding per effect, each saying which constraint its numbers come from, a
 parameter the data cannot pin down reported as NaN with the reason."""
 
@@ -10,16 +10,16 @@ from typing import Any
 
 import numpy as np
 
-from companion.advice import actions, recorded_parameters
 from companion.config import Config
-from companion.recording import Recording
-from companion.report import Finding, Fit, Report, Unexplained, Window
-from companion.sensor_diagnose.band import RotationBandFit, rotation_content
-from companion.sensor_diagnose.diagnosis import SensorDiagnosis
-from companion.sensor_diagnose.legs import pattern_match
-from companion.sensor_diagnose.numerics import runs
-from companion.sensor_diagnose.settings import QUANT_RMS_COUNTS, SensorDiagnosisSettings
-from companion.sensor_diagnose.timing import range_finding, timing_findings
+from companion.diagnose.advice import actions, recorded_parameters
+from companion.diagnose.report import Finding, Fit, Report, Unexplained, Window
+from companion.diagnose.sensor.band import RotationBandFit, rotation_content
+from companion.diagnose.sensor.diagnosis import SensorDiagnosis
+from companion.diagnose.sensor.legs import pattern_match
+from companion.diagnose.sensor.numerics import runs
+from companion.diagnose.sensor.settings import QUANT_RMS_COUNTS, SensorDiagnosisSettings
+from companion.diagnose.sensor.timing import range_finding, timing_findings
+from companion.recordings.load import Recording
 
 
 def build_report(rec: Recording, cfg: Config, d: SensorDiagnosis, st: SensorDiagnosisSettings) -> Report:
@@ -209,7 +209,7 @@ def _yaw_finding(d: SensorDiagnosis, st: SensorDiagnosisSettings) -> Finding:
     ho = band.heldout_
     fit = Fit(ho["delay"], ho["yaw"])
     ev = {"constraint": "rotation band: cross-axis response of the flow to roll and pitch",
-          "convention": "sensor x axis turned by +yaw towards body y (simvehicle.flow_sensor.sensor_axes)"}
+          "convention": "sensor x axis turned by +yaw towards body y (simvehicle.model.flow_sensor.sensor_axes)"}
     if band.yaw_sigma_ > math.radians(10):
         return Finding(effect="flow_yaw_misalignment", significant=False, parameters={"yaw": float("nan")},
                        uncertainty={"yaw": float("nan")},

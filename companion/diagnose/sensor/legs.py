@@ -10,10 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from companion.sensor_diagnose.motions import DocumentedMotion
-from companion.sensor_diagnose.numerics import moving_mean, window_integral
-from companion.sensor_diagnose.series import SensorSeries
-from companion.sensor_diagnose.settings import SensorDiagnosisSettings
+from companion.diagnose.sensor.motions import DocumentedMotion
+from companion.diagnose.sensor.numerics import moving_mean, window_integral
+from companion.diagnose.sensor.series import SensorSeries
+from companion.diagnose.sensor.settings import SensorDiagnosisSettings
 
 
 @dataclass

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.recording import recording_stem
-from companion.report import Finding
-from companion.report_html import write_html_report
-from companion.sensor_diagnose.diagnosis import SensorDiagnosis
-from companion.sensor_diagnose.motions import leg_reference
-from companion.sensor_diagnose.plots import plot_diagnosis
+from companion.diagnose.report import Finding
+from companion.diagnose.report_html import write_html_report
+from companion.diagnose.sensor.diagnosis import SensorDiagnosis
+from companion.diagnose.sensor.motions import leg_reference
+from companion.diagnose.sensor.plots import plot_diagnosis
+from companion.recordings.load import recording_stem
 
 
 def _fmt_g(v: float, s: float) -> str:

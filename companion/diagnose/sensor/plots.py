@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.sensor_diagnose.band import rotation_content
-from companion.sensor_diagnose.diagnosis import SensorDiagnosis
-from companion.sensor_diagnose.motions import leg_reference
+from companion.diagnose.sensor.band import rotation_content
+from companion.diagnose.sensor.diagnosis import SensorDiagnosis
+from companion.diagnose.sensor.motions import leg_reference
 
 
 def plot_diagnosis(d: SensorDiagnosis, path: Path) -> None:

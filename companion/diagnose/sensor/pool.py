@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.sensor_diagnose.diagnosis import SensorDiagnosis
-from companion.sensor_diagnose.settings import SensorDiagnosisSettings
+from companion.diagnose.sensor.diagnosis import SensorDiagnosis
+from companion.diagnose.sensor.settings import SensorDiagnosisSettings
 
 
 @dataclass

@@ -11,12 +11,12 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config, load_config
-from companion.recording import Recording, load_recording
-from companion.report import Report
-from companion.sensor_diagnose.diagnosis import SensorDiagnosis, analyse
-from companion.sensor_diagnose.findings import build_report
-from companion.sensor_diagnose.markdown import write_report_dir
-from companion.sensor_diagnose.settings import SensorDiagnosisSettings
+from companion.diagnose.report import Report
+from companion.diagnose.sensor.diagnosis import SensorDiagnosis, analyse
+from companion.diagnose.sensor.findings import build_report
+from companion.diagnose.sensor.markdown import write_report_dir
+from companion.diagnose.sensor.settings import SensorDiagnosisSettings
+from companion.recordings.load import Recording, load_recording
 
 
 def diagnose_sensor(rec: Recording, cfg: Config, *, report_dir: Path | None = None, profile: str | None = None,

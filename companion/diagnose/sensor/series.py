@@ -1,6 +1,6 @@
 """Extraction: a recording as the sensor series the diagnosis fits (flow counts in the paper's
 convention, gyro, accelerometer, valid downward range), on report time. The signals, their
-sender, time fields and units, come from ``companion.signals`` (replay's and diagnose's)."""
+sender, time fields and units, come from ``companion.recordings.signals`` (replay's and diagnose's)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import numpy as np
 
 from companion.config import Config
 from companion.errors import RecordingError
-from companion.profiles import Profile, detect_profile
-from companion.recording import Recording
-from companion.signals import downward_range, gyro_sensor, vehicle_flow
+from companion.recordings.load import Recording
+from companion.recordings.signals import downward_range, gyro_sensor, vehicle_flow
+from companion.step.profiles import Profile, detect_profile
 
 
 @dataclass
@@ -50,7 +50,7 @@ def _sorted(t: np.ndarray, *cols: np.ndarray) -> tuple[np.ndarray, ...]:
 
 def extract_series(rec: Recording, cfg: Config, profile: str | None = None) -> SensorSeries:
     """The flow (any profile, as paper-convention counts at the config's Q), gyro, accelerometer
-    and valid downward range of the vehicle in ``rec`` (``companion.signals``: the most frequent
+    and valid downward range of the vehicle in ``rec`` (``companion.recordings.signals``: the most frequent
     flow sender; the first of RAW_IMU, SCALED_IMU, HIGHRES_IMU it sent, clipped samples left out),
     on one time base. RecordingError if one is missing."""
     name = Path(rec.path).name

@@ -7,10 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.importers.common import ReadGrid, find_read_grid
-from companion.report import Finding, Window
-from companion.sensor_diagnose.series import SensorSeries
-from companion.sensor_diagnose.settings import SensorDiagnosisSettings
+from companion.diagnose.report import Finding, Window
+from companion.diagnose.sensor.series import SensorSeries
+from companion.diagnose.sensor.settings import SensorDiagnosisSettings
+from companion.recordings.importers.common import ReadGrid, find_read_grid
 
 
 @dataclass

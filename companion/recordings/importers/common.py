@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.columnar import MessageTable
+from companion.recordings.columnar import MessageTable
 
 #: standard gravity used by ArduPilot (GRAVITY_MSS) and PX4 for RAW_IMU milli-g
 GRAVITY_M_S2 = 9.80665

@@ -37,12 +37,12 @@ from typing import Any
 
 import numpy as np
 
-from companion.columnar import MessageTable, Recording, open_recording
 from companion.config import bind, read_toml
 from companion.errors import ConfigError, RecordingError
-from companion.importers.common import GRAVITY_M_S2, Columns, find_read_grid
 from companion.mavlink_ids import DOWNWARD, MAV_DISTANCE_SENSOR_LASER
 from companion.progress import StageCallback
+from companion.recordings.columnar import MessageTable, Recording, open_recording
+from companion.recordings.importers.common import GRAVITY_M_S2, Columns, find_read_grid
 
 TIME_UNITS_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
 GYRO_UNITS_RAD_S = {"rad/s": 1.0, "deg/s": math.pi / 180.0, "mrad/s": 1e-3}

@@ -25,7 +25,7 @@ indexes the file (formats and message offsets, robust to corrupt stretches); the
 then decoded with numpy in one pass per message type.
 
 The helpers the importers share (``build_table``, ``assign_records``, ``nearest_index``) are in
-``companion.importers.common``, the attitude conversions in ``companion.rotation``.
+``companion.recordings.importers.common``, the attitude conversions in ``companion.rotation``.
 """
 
 from __future__ import annotations
@@ -40,11 +40,11 @@ from typing import Any
 
 import numpy as np
 
-from companion.columnar import MessageTable, Recording, read_recording_bytes
 from companion.errors import RecordingError
-from companion.importers.common import GRAVITY_M_S2, Columns, assign_records, build_table, nearest_index
 from companion.mavlink_ids import MAV_DISTANCE_SENSOR_UNKNOWN
 from companion.progress import StageCallback
+from companion.recordings.columnar import MessageTable, Recording, read_recording_bytes
+from companion.recordings.importers.common import GRAVITY_M_S2, Columns, assign_records, build_table, nearest_index
 from companion.rotation import euler_to_quaternions
 
 #: ArduPilot RangeFinder::Status::Good

@@ -38,11 +38,11 @@ from typing import BinaryIO
 
 import numpy as np
 
-from companion.columnar import MessageTable, Recording, open_recording
 from companion.errors import RecordingError
-from companion.importers.common import GRAVITY_M_S2, Columns, assign_records, build_table, nearest_index
 from companion.mavlink_ids import MAV_DISTANCE_SENSOR_UNKNOWN
 from companion.progress import StageCallback
+from companion.recordings.columnar import MessageTable, Recording, open_recording
+from companion.recordings.importers.common import GRAVITY_M_S2, Columns, assign_records, build_table, nearest_index
 from companion.rotation import quaternions_to_euler
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"

@@ -12,11 +12,11 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from companion.importers.common import GRAVITY_M_S2
 from companion.mavlink_ids import DOWNWARD, GUIDED_NOGPS
-from companion.profiles import Profile
+from companion.recordings.importers.common import GRAVITY_M_S2
 from companion.rotation import euler_to_quaternion
-from simvehicle.sim import FrameSample
+from companion.step.profiles import Profile
+from simvehicle.model.sim import FrameSample
 
 
 def _i16(x: float) -> int:

@@ -1,0 +1,1 @@
+"""Tools over recordings: replay (and its plot), the CSV format, info, convert."""

@@ -1,0 +1,1 @@
+"""Tools over the simulator: sweeps, re-flying a recording, plots."""
