@@ -1230,7 +1230,7 @@ class CompanionCore:
             pi_state, self.filter_state, cause is HoldCause.NONE, self.engaged, vx, vy, roll, pitch, sx, sy, dt,
             p=p, tilt=tilt)
         self.pi.state = PiState(*pi_state)
-        if cause is HoldCause.NONE and not self.engaged:
+        if rules.disengaged(cause is HoldCause.NONE, self.engaged):
             cause = HoldCause.DISENGAGED
         out = StepOutput(f.time_s, dt, vx_f, vy_f, sx, sy, roll_cmd, pitch_cmd, cause, gx, gy, rng, vx_raw, vy_raw,
                          vx_var_m2_s2=var_x, vy_var_m2_s2=var_y)

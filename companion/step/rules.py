@@ -163,3 +163,9 @@ def control_action(usable: Any, engaged: Any) -> tuple[Any, Any]:
     Engaged but held: neither, the integrals frozen (and the filter restarts at the next usable
     frame)."""
     return usable & engaged, engaged == False  # noqa: E712
+
+
+def disengaged(usable: Any, engaged: Any) -> Any:
+    """A frame the step would have used while the vehicle is not in the companion's mode: it is
+    labelled DISENGAGED (no other cause held it)."""
+    return usable & (engaged == False)  # noqa: E712

@@ -116,7 +116,7 @@ from companion.step.core import (
     run_control,
 )
 from companion.step.profiles import FLOW_MESSAGE, FlowColumns, Profile, detect_profile
-from companion.step.rules import clip_speed, covered_span
+from companion.step.rules import clip_speed, covered_span, disengaged
 from companion.step.setpoint import decayed_setpoint
 from companion.tools.csv_format import iter_rows
 
@@ -439,7 +439,7 @@ def replay(rec: Recording, cfg: Config, profile: Profile, options: EstimatorOpti
     _, _, vx_used, vy_used, roll_cmd, pitch_cmd = run_control((0.0, 0.0), FILTER_RESET, codes == 0, engaged, vx, vy,
                                                               roll_a, pitch_a, sx, sy, dt, p=p, tilt=tilt)
     cause = codes.astype(np.int64)
-    cause = np.where((cause == 0) & ~engaged, CAUSE_CODES.index(HoldCause.DISENGAGED), cause)
+    cause = np.where(disengaged(cause == 0, engaged), CAUSE_CODES.index(HoldCause.DISENGAGED), cause)
     names = np.array([c.name if c is not HoldCause.NONE else "" for c in CAUSE_CODES], dtype=object)
     held = np.bincount(cause, minlength=len(CAUSE_CODES))
     summary = ", ".join(f"{CAUSE_CODES[i].name.lower()} {int(k)}" for i, k in enumerate(held) if i and k)
