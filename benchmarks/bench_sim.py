@@ -132,7 +132,7 @@ def measure_compile() -> dict[str, Any]:
     compile, the first time after a change of fastsim.py)."""
     import subprocess
 
-    code = ("import time; t0 = time.perf_counter(); from simvehicle import fastsim; t1 = time.perf_counter(); "
+    code = ("import time; t0 = time.perf_counter(); from simvehicle.engines import fastsim; t1 = time.perf_counter(); "
             "fastsim.warm_up(); t2 = time.perf_counter(); print(t1 - t0, t2 - t1)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=600,
                          check=True)

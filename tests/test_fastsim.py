@@ -363,7 +363,7 @@ def test_workers_agree_with_one_process(paper_cfg, tmp_path):
     script = (
         "import json, sys, numpy as np\n"
         "from companion import config as C\n"
-        "from simvehicle import fastsim\n"
+        "from simvehicle.engines import fastsim\n"
         "cfg = C.with_effects(C.load_config(), flow_delay=C.FlowDelay(0.013), wind_force=C.WindForce(2, -3, .3, .7))\n"
         "cfg = C.replace_section(cfg, 'imu', gyro_noise=True)\n"
         "r = fastsim.simulate_batch(cfg, 5, duration_s=1.0, setpoints=lambda t: (1.5, -2.0), seeds=[1, 2, 3, 4, 5],\n"
