@@ -32,7 +32,7 @@ import numpy as np
 
 SOURCE = Path(__file__).resolve().parent / "native" / "kernels.c"
 #: the ABI the Python side expects (``fh_version`` in kernels.c)
-VERSION = 9
+VERSION = 10
 _FLAGS = ("-O2", "-std=c99", "-ffp-contract=off", "-shared", "-fPIC")
 _COMPILE_TIMEOUT_S = 120.0
 #: most threads the kernels run in at once (reading and formatting are memory-bound beyond a few)
@@ -95,6 +95,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.fh_crc_packet.argtypes = (p, p, i64, ctypes.c_uint8)
     lib.fh_scan.restype = i64
     lib.fh_scan.argtypes = (p, i64, i64, i64, p, p, i64, i64, p, p, p, p, p, p, p, p, p, i64, p, p)
+    lib.fh_count.restype = i64
+    lib.fh_count.argtypes = (p, i64, i64, i64, p, i64)
     lib.fh_tables.restype = i32
     lib.fh_tables.argtypes = (p, i64, i64, p, p, p, p, p, p, p, i32, p, p, p, p, p, p, p, p, p, p)
     lib.fh_fields.restype = i32

@@ -271,6 +271,40 @@ def test_reader_in_threads_equals_numpy_path(tmp_path, monkeypatch, n_threads):
     assert_same_recording(fast, slow)
 
 
+def test_chain_count_is_the_scans_count_on_a_whole_file(tmp_path, monkeypatch):
+    """``fh_count`` (the record chain followed, no CRC) gives each range the number of good
+    packets ``fh_scan`` finds in it on a file whose records are whole, at any cut: the threads of
+    the scan then write straight into their rows of one set of arrays (no copy), and the reader
+    still equals the numpy path. On a damaged file the count is only a hint: the reader joins the
+    ranges by a copy and equals the numpy path too (test_reader_in_threads_equals_numpy_path)."""
+    from companion.recordings import tlog_reader as tr
+
+    path = tmp_path / "flight_a.tlog"
+    path.write_bytes(gzip.decompress(FLIGHT_A.read_bytes()))
+    buf, n = tr._load(path)
+    known = tr._crc_extra_lookup()[0].view(np.uint8)
+    good, _ = tr._pass1_native(lib, buf, n, tr._Progress(False, ""))
+    total = sum(len(p.s) for p in good)
+    assert total > 80_000
+    starts = np.concatenate([p.s for p in good])
+    rng = np.random.default_rng(3)
+    for cuts in ([8, n], [8, *sorted(rng.integers(9, n, size=4).tolist()), n]):
+        counts = [lib.fh_count(buf.ctypes.data, n, a, b, known.ctypes.data, len(known))
+                  for a, b in zip(cuts, cuts[1:], strict=False)]
+        # the packets whose first byte lies in each range
+        assert counts == np.diff(np.searchsorted(starts, cuts)).tolist()
+    concatenated = []
+    concatenate = np.concatenate
+    monkeypatch.setattr(np, "concatenate", lambda *a, **k: concatenated.append(1) or concatenate(*a, **k))
+    monkeypatch.setattr(tr, "_PARALLEL_MIN_BYTES", 0)
+    monkeypatch.setattr(native, "threads", lambda: 3)
+    good3, _ = tr._pass1_native(lib, buf, n, tr._Progress(False, ""))
+    monkeypatch.undo()
+    assert len(good3) == 1 and not concatenated  # one set of arrays, none copied
+    for f in tr._Packets._FIELDS:
+        np.testing.assert_array_equal(getattr(good3[0], f), np.concatenate([getattr(p, f) for p in good]))
+
+
 def test_run_all_keeps_the_order_and_raises_the_first_error():
     import threading
     import time

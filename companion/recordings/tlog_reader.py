@@ -38,6 +38,7 @@ import ctypes
 import functools
 import importlib
 import importlib.util
+import itertools
 import marshal
 import os
 import re
@@ -876,48 +877,83 @@ def _pass1_native(lib: Any, buf: np.ndarray, n_bytes: int, progress: _Progress
     the numpy pass candidate by candidate): the good packets, and the candidates that fit but are
     not chained. Each candidate is judged on its own, so the file is scanned in as many ranges as
     ``native.threads()`` (files from ``_PARALLEL_MIN_BYTES``), one per thread, and the ranges'
-    findings put in file order: the same as one scan from start to end. The first range's arrays
-    are sized for the whole file and the others' findings copied in after its own (one copy of
-    the later ranges' packets, not of all: in a fresh process every new page costs its zeroing)."""
+    findings put in file order: the same as one scan from start to end.
+
+    Each range's packets are first counted along the record chain (``fh_count``: no CRC), so
+    that every thread writes its packets straight into its own rows of one set of arrays; in a
+    fresh process every new page costs its zeroing, and copying the later ranges' packets in
+    after the first's cost a second set of pages. Where a range's scan finds another number of
+    packets than its count (damage, unknown ids, a CRC error), the ranges' findings are joined
+    by a copy instead: the same packets either way."""
     n_threads = native.threads() if n_bytes >= _PARALLEL_MIN_BYTES else 1
     cuts = [TIME_HEADER_LEN + (n_bytes - TIME_HEADER_LEN) * k // n_threads for k in range(n_threads + 1)]
     lock = threading.Lock()
+    nf = len(_Packets._FIELDS)
+    if n_threads == 1:
+        one = _scan_range(lib, buf, n_bytes, cuts[0], cuts[1], n_bytes, progress, lock)
+        good = _append_into_first([(arrays[:nf], n) for arrays, n, _ in one])
+        other = _append_into_first([(arrays[nf:], n) for arrays, _, n in one])
+        return [_Packets(*arrays) for arrays in good], [arrays[0] for arrays in other]
+
+    known_u8 = _crc_extra_lookup()[0].view(np.uint8)
+
+    def count(k: int) -> int:
+        return int(lib.fh_count(buf.ctypes.data, n_bytes, cuts[k], cuts[k + 1], known_u8.ctypes.data,
+                                len(known_u8)))
+
+    counts = native.run_all([functools.partial(count, k) for k in range(n_threads)], n_threads)
+    rows = [0, *itertools.accumulate(counts)]
+    shared = [np.empty(rows[-1], dt) for dt in _SCAN_DTYPES[:nf]]
 
     def scan(k: int) -> list[tuple[list[np.ndarray], int, int]]:
-        return _scan_range(lib, buf, n_bytes, cuts[k], cuts[k + 1], n_bytes if k == 0 else cuts[k + 1],
-                           progress, lock)
+        into = [a[rows[k]:rows[k + 1]] for a in shared]
+        return _scan_range(lib, buf, n_bytes, cuts[k], cuts[k + 1], cuts[k + 1], progress, lock, into)
 
-    parts = [part for found in native.run_all([functools.partial(scan, k) for k in range(n_threads)], n_threads)
-             for part in found]
-    nf = len(_Packets._FIELDS)
-    good = _append_into_first([(arrays[:nf], n) for arrays, n, _ in parts])
-    other = _append_into_first([(arrays[nf:], n) for arrays, _, n in parts])
+    found = native.run_all([functools.partial(scan, k) for k in range(n_threads)], n_threads)
+    other = _append_into_first([(arrays[nf:], n) for parts in found for arrays, _, n in parts])
+    # every range filled exactly its rows (a range's scan goes on in new arrays past its rows,
+    # finding no more good packets there when the count was right)
+    if all(parts[0][1] == n and not any(g for _, g, _ in parts[1:]) for parts, n in zip(found, counts, strict=True)):
+        good = [shared]
+    else:
+        good = [[np.concatenate([arrays[f][:n] for parts in found for arrays, n, _ in parts]) for f in range(nf)]]
     return [_Packets(*arrays) for arrays in good], [arrays[0] for arrays in other]
 
 
+#: the arrays ``_scan_range`` fills: the ``_Packets`` fields, then the other candidates' positions
+_SCAN_DTYPES = (np.int64, np.uint8, np.int16, np.int16, np.int32, np.uint8, np.uint8, np.uint64, np.int64)
+
+
 def _scan_range(lib: Any, buf: np.ndarray, n_bytes: int, pos: int, stop: int, sized_for: int, progress: _Progress,
-                lock: threading.Lock) -> list[tuple[list[np.ndarray], int, int]]:
+                lock: threading.Lock, into: list[np.ndarray] | None = None) -> list[tuple[list[np.ndarray], int, int]]:
     """``fh_scan`` over the candidates in [pos, stop), in ``_SCAN_CHUNK`` steps (for the progress
     bar), into arrays sized for a record every 16 bytes of [pos, sized_for) (the shortest record:
     more is possible only with overlapping candidates, and then the scan goes on in new arrays);
-    pages never written are never touched. Returns each set of arrays used (the ``_Packets``
-    fields, then the other candidates) with its counts of good packets and other candidates."""
+    pages never written are never touched. ``into``: arrays (views) for the first good packets,
+    of the length the caller expects; the scan goes on in new arrays when they are full.
+    Returns each set of arrays used (the ``_Packets`` fields, then the other candidates) with its
+    counts of good packets and other candidates."""
     known_tab, extra_tab = _crc_extra_lookup()
     known_u8 = known_tab.view(np.uint8)
     n_good = ctypes.c_int64()
     n_other = ctypes.c_int64()
     out: list[tuple[list[np.ndarray], int, int]] = []
+    nf = len(_Packets._FIELDS)
     while pos < stop:
         cap = (sized_for - pos) // 16 + 64
-        arrays: list[np.ndarray] = [np.empty(cap, dt) for dt in (np.int64, np.uint8, np.int16, np.int16, np.int32,
-                                                                 np.uint8, np.uint8, np.uint64, np.int64)]
+        if into is not None:
+            arrays = [*into, np.empty(cap, _SCAN_DTYPES[nf])]
+            into = None
+        else:
+            arrays = [np.empty(cap, dt) for dt in _SCAN_DTYPES]
+        cap_good, cap_other = len(arrays[0]), len(arrays[-1])
         done_good = done_other = 0
-        while pos < stop and done_good < cap and done_other < cap:
+        while pos < stop and done_good < cap_good and done_other < cap_other:
             step = min(pos + _SCAN_CHUNK, stop)
             reached = lib.fh_scan(buf.ctypes.data, n_bytes, pos, step, known_u8.ctypes.data, extra_tab.ctypes.data,
-                                  len(known_tab), cap - done_good,
+                                  len(known_tab), cap_good - done_good,
                                   *(a[done_good:].ctypes.data for a in arrays[:-1]), ctypes.byref(n_good),
-                                  cap - done_other, arrays[-1][done_other:].ctypes.data, ctypes.byref(n_other))
+                                  cap_other - done_other, arrays[-1][done_other:].ctypes.data, ctypes.byref(n_other))
             done_good += n_good.value
             done_other += n_other.value
             with lock:
