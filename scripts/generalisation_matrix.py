@@ -1,7 +1,9 @@
 """The generalisation matrix (issue 12): judge the mismatch finder on flights it was never tuned on.
 
     .venv/bin/python scripts/generalisation_matrix.py --n 300 --seed 0 --out out/generalisation \
-        --workers 2 [--timeout 120] [--doc docs/generalisation_matrix.md]
+        --workers 2 [--timeout 120] [--doc docs/generalisation_matrix.md] [--oracle]
+    .venv/bin/python scripts/generalisation_matrix.py --add-oracle --out out/generalisation \
+        [--workers 2] [--doc docs/generalisation_matrix.md]
 
 Each recording i is drawn from its own seed by ``simvehicle.engines.flightgen`` (an independent vehicle,
 sensor and noise model; the companion flies the loop), written as ``OUT/recordings/NAME.tlog`` with
@@ -12,6 +14,13 @@ subprocess that sees only the recording and the config, killed after ``--timeout
 ``OUT/results.jsonl`` as soon as it is known; the Markdown table goes to ``--doc`` and a one-line
 summary to stdout. A recording already generated with the same generator version and seed is
 reused (delete OUT/recordings to regenerate).
+
+Oracle detectability (``simvehicle.engines.oracle``): with ``--oracle`` each recording's true effects
+also get the evidence an oracle who knows them has on the finder's own residuals (a z on the
+scale of the finder's z_min); ``--add-oracle`` adds it to an existing OUT (its results.jsonl and
+recordings) without running anything else, and writes the Markdown again. The report then has an
+oracle-z column and the hits and misses per effect by oracle z band; what counts as right does not
+change. The run's settings go to OUT/run.json (the header of a Markdown written again from them).
 """
 
 from __future__ import annotations
@@ -20,6 +29,7 @@ import argparse
 import json
 import math
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -34,8 +44,12 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from simvehicle.engines.flightgen import EFFECT_NAMES, GENERATOR_VERSION, TOLERANCES, jsonable, score  # noqa: E402
+from simvehicle.engines.oracle import BANDS, as_json, band, oracle_files  # noqa: E402
 
 DEFAULT_DOC = ROOT / "docs" / "generalisation_matrix.md"
+#: an effect the oracle sees (z at least this), and one it cannot tell from a rival (rival z under this)
+Z_SEEN = 5.0
+Z_SEEN_NOT = 3.0
 
 
 def recording_seed(base_seed: int, i: int) -> int:
@@ -62,8 +76,24 @@ def _generate(seed: int, folder: Path, stem: str) -> tuple[dict[str, Any], float
     return truth, wall, False
 
 
-def run_one(i: int, seed: int, out: str, timeout_s: float) -> dict[str, Any]:
-    """Generate, diagnose (subprocess, timeout) and score recording ``i``."""
+def add_oracle(res: dict[str, Any], rec_dir: Path) -> dict[str, Any]:
+    """``res`` with the oracle evidence of its true effects (``simvehicle.engines.oracle``) under
+    ``oracle`` (and its time under ``oracle_s``), or the failure under ``oracle_error``."""
+    res = dict(res)
+    res.pop("oracle_error", None)
+    t = time.perf_counter()
+    try:
+        res["oracle"] = as_json(oracle_files(rec_dir, res["name"]))
+    except Exception as exc:  # a recording the oracle cannot read is reported, not hidden
+        res.pop("oracle", None)
+        res["oracle_error"] = f"{type(exc).__name__}: {exc}"
+    res["oracle_s"] = time.perf_counter() - t
+    return res
+
+
+def run_one(i: int, seed: int, out: str, timeout_s: float, oracle: bool = False) -> dict[str, Any]:
+    """Generate, diagnose (subprocess, timeout) and score recording ``i``; with ``oracle``, add the
+    oracle evidence of its true effects (``add_oracle``)."""
     out_p = Path(out)
     rec_dir = out_p / "recordings"
     rep_dir = out_p / "reports"
@@ -100,18 +130,20 @@ def run_one(i: int, seed: int, out: str, timeout_s: float) -> dict[str, Any]:
     res["found"] = [{"effect": f["effect"], "parameters": f.get("parameters", {})}
                     for f in report.get("findings", []) if f.get("significant")]
     res["n_unexplained"] = len(report.get("unexplained", []) or [])
+    if oracle:
+        res = add_oracle(res, rec_dir)
     return res
 
 
-def _job(args: tuple[int, int, str, float]) -> dict[str, Any]:
+def _job(args: tuple[int, int, str, float, bool]) -> dict[str, Any]:
     return run_one(*args)
 
 
 def run_matrix(n: int, base_seed: int, out: Path, workers: int, timeout_s: float, first: int = 0,
-               progress: bool = True) -> list[dict[str, Any]]:
+               progress: bool = True, oracle: bool = False) -> list[dict[str, Any]]:
     """Run recordings ``first .. first+n-1``; results in index order (also streamed to results.jsonl)."""
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(i, recording_seed(base_seed, i), str(out), timeout_s) for i in range(first, first + n)]
+    jobs = [(i, recording_seed(base_seed, i), str(out), timeout_s, oracle) for i in range(first, first + n)]
     results: list[dict[str, Any]] = []
     earlier: list[dict[str, Any]] = []
     path = out / "results.jsonl"
@@ -136,6 +168,57 @@ def run_matrix(n: int, base_seed: int, out: Path, workers: int, timeout_s: float
                 for f in as_completed(futs):
                     take(f.result())
     return sorted(earlier + results, key=lambda r: r["i"])
+
+
+def _oracle_job(args: tuple[dict[str, Any], str]) -> dict[str, Any]:
+    return add_oracle(args[0], Path(args[1]))
+
+
+def add_oracle_to(out: Path, workers: int, progress: bool = True) -> list[dict[str, Any]]:
+    """The oracle evidence (``add_oracle``) added to every result of ``out/results.jsonl`` with true
+    effects and a diagnosis that ran, from ``out/recordings``; the file is written again (each
+    result once all are done) and the results returned in index order."""
+    path = out / "results.jsonl"
+    if not path.exists():
+        raise SystemExit(f"generalisation_matrix: {path} not found (run the matrix first)")
+    results = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+    todo = [k for k, r in enumerate(results) if r.get("status") == "ok" and r.get("truth_effects")]
+    jobs = [(results[k], str(out / "recordings")) for k in todo]
+    done: list[dict[str, Any]] = []
+    if workers <= 1:
+        done = [_oracle_job(j) for j in jobs]
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as ex:
+            done = list(ex.map(_oracle_job, jobs))
+    for k, r in zip(todo, done, strict=True):
+        results[k] = r
+        if progress:
+            zs = ", ".join(f"{e} {v['z']:.1f}" for e, v in r.get("oracle", {}).items())
+            print(f"{r['name']}: oracle z {zs or r.get('oracle_error')} ({r['oracle_s']:.1f} s)", file=sys.stderr,
+                  flush=True)
+    part = path.with_suffix(".jsonl.part")
+    part.write_text("".join(json.dumps(jsonable(r)) + "\n" for r in results))
+    part.replace(path)
+    return sorted(results, key=lambda r: r["i"])
+
+
+def run_settings(out: Path, results: list[dict[str, Any]], args: argparse.Namespace) -> dict[str, Any]:
+    """The header settings of an existing OUT: OUT/run.json, else the header of the Markdown it holds
+    (a matrix run before run.json existed), else the command line's."""
+    p = out / "run.json"
+    if p.exists():
+        return dict(json.loads(p.read_text()))
+    got: dict[str, Any] = {"n": len(results), "seed": args.seed, "timeout_s": args.timeout, "workers": args.workers,
+                           "finder": "not recorded"}
+    md = out / "generalisation_matrix.md"
+    text = md.read_text() if md.exists() else ""
+    m = re.search(r"--n (\d+) --seed (-?\d+) --workers (\d+) --timeout ([0-9.]+)", text)
+    if m:
+        got.update(n=int(m.group(1)), seed=int(m.group(2)), workers=int(m.group(3)), timeout_s=float(m.group(4)))
+    f = re.search(r"^Finder judged: (.*?)\. The finder is not tuned", text, re.M)
+    if f:
+        got["finder"] = f.group(1)
+    return got
 
 
 # ---------------------------------------------------------------------------------------------
@@ -192,6 +275,16 @@ def summary_line(results: list[dict[str, Any]]) -> str:
             f"{t['timeouts']} hangs (timeouts), {t['errors']} errors; generation median {t['gen_median_s']:.1f} s, "
             f"diagnosis median {t['diag_median_s']:.1f} s, slowest {slow.get('name')} "
             f"({(slow.get('duration_s') or math.nan):.0f} s flight) {(slow.get('diag_s') or math.nan):.1f} s")
+
+
+def oracle_line(results: list[dict[str, Any]]) -> str:
+    """One line: the misses by oracle z band."""
+    missed = [(r, e) for r in results if r.get("status") == "ok"
+              for e, res in r["score"]["effects"].items() if res["outcome"] == "miss"]
+    c: Counter[str] = Counter(_oracle_band(r, e) for r, e in missed)
+    return ("oracle detectability of the misses: " + ", ".join(f"z {b}: {c[b]}" for b in BANDS)
+            + (f", not computed: {c['not computed']}" if c["not computed"] else "")
+            + f"; at z >= {Z_SEEN:g} with a rival z < {Z_SEEN_NOT:g}: {sum(_stood_in(r, e) for r, e in missed)}")
 
 
 def _fmt_tol(param: str, kind: str, tol: float) -> str:
@@ -288,8 +381,120 @@ def finder_version() -> str:
     return f"commit {head}" + (f" with uncommitted changes in {len(dirty)} file(s) under companion/" if dirty else "")
 
 
+def _fmt_z(z: Any) -> str:
+    if z is None:
+        return "-"
+    z = float(z)
+    if not math.isfinite(z):
+        return "inf"
+    return f"{z:.1f}" if z < 100 else f"{z:.0f}"
+
+
+def _oracle_cell(r: dict[str, Any]) -> str:
+    """The oracle z of each true effect of a recording, in the truth's order."""
+    if not r.get("truth_effects"):
+        return "-"
+    if "oracle_error" in r:
+        return "error: " + str(r["oracle_error"]).replace("|", "/").replace("\n", " ")[:80]
+    ev = r.get("oracle")
+    if ev is None:
+        return "-"
+    def one(e: str) -> str:
+        if e not in ev:
+            return f"{e} -"
+        x = ev[e]
+        rival = f" ({_fmt_z(x['z_rival'])} vs {x['rival']})" if x.get("rival") else ""
+        tried = " [not tried by the finder]" if x.get("note") else ""
+        return f"{e} {_fmt_z(x['z'])}{rival}{tried}"
+
+    return "; ".join(one(e) for e in r["truth_effects"])
+
+
+def _stood_in(r: dict[str, Any], effect: str) -> bool:
+    """Whether another candidate stands in for a true effect the oracle sees (z >= 5, rival z < 3)."""
+    ev = (r.get("oracle") or {}).get(effect)
+    if ev is None or ev.get("z") is None or ev.get("z_rival") is None:
+        return False
+    return float(ev["z"]) >= Z_SEEN and float(ev["z_rival"]) < Z_SEEN_NOT
+
+
+def _oracle_band(r: dict[str, Any], effect: str) -> str:
+    ev = (r.get("oracle") or {}).get(effect)
+    return band(float(ev["z"])) if ev is not None and ev.get("z") is not None else "not computed"
+
+
+def oracle_section(results: list[dict[str, Any]], oracle_at: str = "") -> list[str]:
+    """The Markdown section of hits and misses per effect by oracle z band (none when no result
+    has oracle evidence)."""
+    if not any("oracle" in r or "oracle_error" in r for r in results):
+        return []
+    cols = [*BANDS, "not computed"]
+    n: dict[str, Counter[str]] = defaultdict(Counter)
+    hit: dict[str, Counter[str]] = defaultdict(Counter)
+    miss: dict[str, Counter[str]] = defaultdict(Counter)
+    unrep: dict[str, Counter[str]] = defaultdict(Counter)
+    rivalled: Counter[str] = Counter()
+    for r in results:
+        if r.get("status") != "ok":
+            continue
+        for e, res in r["score"]["effects"].items():
+            b = _oracle_band(r, e)
+            for key in (e, "all effects"):
+                n[key][b] += 1
+                if res["outcome"] == "hit":
+                    hit[key][b] += 1
+                else:
+                    miss[key][b] += 1
+                    if res["reason"] == "not reported" or res["reason"].startswith("aliased"):
+                        unrep[key][b] += 1
+                    if _stood_in(r, e):
+                        rivalled[key] += 1
+    rows = [e for e in EFFECT_NAMES if n[e]] + ["all effects"]
+    m = miss["all effects"]
+    lines = [
+        "## Oracle detectability",
+        "",
+        "For each true effect, the evidence an oracle who knows it and its true parameters has against the nominal "
+        "model, on the finder's own residual group for it (`simvehicle/engines/oracle.py`): the drop in the group's "
+        "noise-weighted chi-square when the effect is set to its truth (the other true effects at their truth in "
+        "both), divided by the Newey-West inflation of the noise's projection on the effect (the residual's "
+        "autocovariance over the finder's 10 s), as a normal z through the chi-square tail with the effect's number "
+        "of parameters, as the finder converts its Wald statistic (its z_min is 3). It is an upper bound on what the "
+        "finder can know of the effect alone: the oracle fits nothing, searches nothing (a wind has its true window) "
+        "and does not see two candidates that explain the same residual (a scale and a range offset at one height, "
+        "a lever arm and a rotation gain, an attitude delay and the attitude dynamics): the rival z does, the same "
+        "z with one other candidate effect of the group fitted in both, the least over the others (in brackets in the "
+        "table of every recording, with that effect). Below 3 the recording cannot show the effect; a miss above 5 "
+        "had its evidence in the recording, and if its rival z is under 3 the recording cannot tell it from the "
+        "rival (the finder can only say so). Information only: what counts as right is unchanged."
+        + (f" Computed at {oracle_at}." if oracle_at else ""),
+        "",
+        f"Of {sum(m.values())} misses, {m[BANDS[0]]} have an oracle z {BANDS[0]}, {m[BANDS[1]]} {BANDS[1]}, "
+        f"{m[BANDS[2]]} {BANDS[2]}, {m[BANDS[3]]} {BANDS[3]}" + (f", {m['not computed']} not computed" if
+                                                                m["not computed"] else "")
+        + f"; of the {m[BANDS[2]] + m[BANDS[3]]} at z >= {Z_SEEN:g}, {rivalled['all effects']} have a rival z under "
+          f"{Z_SEEN_NOT:g}.",
+        "",
+        "Hits / true effects, by oracle z:",
+        "",
+        "| effect | " + " | ".join(f"z {c}" if c != "not computed" else c for c in cols) + " |",
+        "|---|" + "---|" * len(cols),
+    ]
+    for e in rows:
+        lines.append(f"| {e} | " + " | ".join(f"{hit[e][c]} / {n[e][c]}" if n[e][c] else "-" for c in cols) + " |")
+    lines += ["", "Misses (of them not reported), by oracle z; the last column: misses at z >= "
+              f"{Z_SEEN:g} whose rival z is under {Z_SEEN_NOT:g}:", "",
+              "| effect | misses | " + " | ".join(f"z {c}" if c != "not computed" else c for c in cols)
+              + f" | z >= {Z_SEEN:g}, rival z < {Z_SEEN_NOT:g} |", "|---|---|" + "---|" * (len(cols) + 1)]
+    for e in rows:
+        total = sum(miss[e].values())
+        lines.append(f"| {e} | {total} | " + " | ".join(f"{miss[e][c]} ({unrep[e][c]})" if miss[e][c] else "-"
+                                                       for c in cols) + f" | {rivalled[e] or '-'} |")
+    return lines + [""]
+
+
 def markdown(results: list[dict[str, Any]], *, n: int, seed: int, timeout_s: float, workers: int,
-             finder: str = "") -> str:
+             finder: str = "", oracle_at: str = "") -> str:
     t = totals(results)
     ok = [r for r in results if r.get("status") == "ok"]
     per: dict[str, Counter[str]] = {e: Counter() for e in EFFECT_NAMES}
@@ -371,7 +576,8 @@ def markdown(results: list[dict[str, Any]], *, n: int, seed: int, timeout_s: flo
               "`quadratic_drag` is not false when an unexplained entry names a velocity-squared term (still a miss); "
               "a true `gyro_lag` left as an unexplained gyro term that mentions a lag is a hit when nothing wrong is "
               "named. rx, ry of `flow_lever_arm` are not scored."]
-    lines += ["", "## Breakdowns", ""]
+    lines += [""] + oracle_section(results, oracle_at)
+    lines += ["## Breakdowns", ""]
     lines += _breakdown(results, lambda r: r.get("profile", "?"), "profile") + [""]
     lines += _breakdown(results, lambda r: r.get("loss", "?"), "recording loss") + [""]
     lines += _breakdown(results, lambda r: len(r.get("truth_effects", {})), "true effects") + [""]
@@ -387,15 +593,19 @@ def markdown(results: list[dict[str, Any]], *, n: int, seed: int, timeout_s: flo
             lines.append(f"| {r['name']} | {r.get('duration_s', math.nan):.0f} | {r['status']} | "
                          f"{r.get('diag_s', math.nan):.1f} | {detail} |")
         lines.append("")
+    with_oracle = any("oracle" in r or "oracle_error" in r for r in results)
+    ocol = " oracle z |" if with_oracle else ""
+    rule = "|---" * (12 + with_oracle) + "|"
     lines += ["## Every recording", "",
-              "| recording | seed | profile | s | loss | noise | flyable | truth | found (significant) | result | "
-              "gen s | diag s |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| recording | seed | profile | s | loss | noise | flyable | truth | found (significant) | result |"
+              + ocol + " gen s | diag s |", rule]
     for r in results:
         found = _fmt_effects(r.get("found", [])) if r.get("status") == "ok" else "-"
+        oz = f" {_oracle_cell(r)} |" if with_oracle else ""
         lines.append(f"| {r['name']} | {r['seed']} | {r.get('profile', '?')} | {r.get('duration_s', math.nan):.0f} | "
                      f"{r.get('loss', '?')} | {_noise_words(r.get('noise', {}))} | "
                      f"{'yes' if r.get('flyable') else 'no'} | {_fmt_effects(r.get('truth_effects', {}))} | {found} | "
-                     f"{_verdict(r)} | {r.get('gen_s', math.nan):.1f} | {r.get('diag_s', math.nan):.1f} |")
+                     f"{_verdict(r)} |{oz} {r.get('gen_s', math.nan):.1f} | {r.get('diag_s', math.nan):.1f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -410,16 +620,35 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=120.0, help="a diagnosis running longer is a hang (s)")
     ap.add_argument("--doc", default=str(DEFAULT_DOC), help="Markdown table to write ('' for none)")
     ap.add_argument("--quiet", action="store_true", help="no per-recording progress on stderr")
+    ap.add_argument("--oracle", action="store_true",
+                    help="also the oracle detectability of each true effect (simvehicle/engines/oracle.py)")
+    ap.add_argument("--add-oracle", action="store_true",
+                    help="only add the oracle detectability to the results in --out (its recordings) and write the "
+                         "Markdown again; nothing is generated or diagnosed")
     args = ap.parse_args(argv)
     out = Path(args.out)
-    finder = finder_version()
-    results = run_matrix(args.n, args.seed, out, args.workers, args.timeout, args.first, progress=not args.quiet)
-    text = markdown(results, n=args.n, seed=args.seed, timeout_s=args.timeout, workers=args.workers, finder=finder)
+    if args.add_oracle:
+        results = add_oracle_to(out, args.workers, progress=not args.quiet)
+        run = run_settings(out, results, args)
+        run["oracle_at"] = finder_version()
+        (out / "run.json").write_text(json.dumps(run, indent=1) + "\n")
+    else:
+        run = {"n": args.n, "seed": args.seed, "first": args.first, "timeout_s": args.timeout, "workers": args.workers,
+               "finder": finder_version()}
+        if args.oracle:
+            run["oracle_at"] = run["finder"]
+        results = run_matrix(args.n, args.seed, out, args.workers, args.timeout, args.first, progress=not args.quiet,
+                             oracle=args.oracle)
+        (out / "run.json").write_text(json.dumps(run, indent=1) + "\n")
+    text = markdown(results, n=int(run["n"]), seed=int(run["seed"]), timeout_s=float(run["timeout_s"]),
+                    workers=int(run["workers"]), finder=str(run["finder"]), oracle_at=str(run.get("oracle_at", "")))
     (out / "generalisation_matrix.md").write_text(text)
     if args.doc:
         Path(args.doc).write_text(text)
     (out / "totals.json").write_text(json.dumps(totals(results), indent=1) + "\n")
     print(summary_line(results))
+    if any("oracle" in r for r in results):
+        print(oracle_line(results))
     return 0
 
 
