@@ -117,14 +117,17 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 _exit_directly = False
 
 
-def _batch_process() -> None:
+def _batch_process(*, exit_directly: bool = True) -> None:
     """``replay`` and ``info`` read a recording, work on it and exit: set this process up for
-    that (docs/performance.md).
+    that (docs/performance.md). ``diagnose`` too, except the direct exit (``exit_directly``).
 
     - One OpenBLAS thread, unless the user chose otherwise: they do no large linear algebra, and
       OpenBLAS's idle threads, started when numpy loads, spin for about 0.1 s of CPU each before
       they sleep, taking the core the compiled reader's and CSV writer's second thread would run
-      on. Only before numpy is loaded (after, it has no effect).
+      on. Only before numpy is loaded (after, it has no effect). The diagnosis' products are
+      small (13 parameters by the frames): a second BLAS thread cost it more in synchronising
+      than it gave (an hour-long recording: 5.5 s of CPU with one thread, 10.4 s with two, and
+      a longer wall time).
     - With glibc, memory freed is kept for the next allocation rather than given back to the
       system (allocations under 64 MB from the heap, no trimming): numpy's temporaries of a long
       recording's columns were otherwise mapped and unmapped again and again, and every fresh
@@ -133,7 +136,7 @@ def _batch_process() -> None:
       (``finish``): their files are written and closed by then, and freeing every object and
       array one by one took some 30 ms after an hour-long replay."""
     global _exit_directly
-    _exit_directly = True
+    _exit_directly = exit_directly
     if "numpy" not in sys.modules:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     if sys.platform.startswith("linux"):
@@ -163,6 +166,7 @@ def _dispatch(command: str) -> Callable[[argparse.Namespace], int]:
     elif command == "ardupilot-script":
         from companion.ardupilot_script import run_cli
     else:
+        _batch_process(exit_directly=False)
         from companion.diagnose.closed_loop.command import run_cli
     return run_cli
 

@@ -32,7 +32,7 @@ import numpy as np
 
 SOURCE = Path(__file__).resolve().parent / "native" / "kernels.c"
 #: the ABI the Python side expects (``fh_version`` in kernels.c)
-VERSION = 10
+VERSION = 11
 _FLAGS = ("-O2", "-std=c99", "-ffp-contract=off", "-shared", "-fPIC")
 _COMPILE_TIMEOUT_S = 120.0
 #: most threads the kernels run in at once (reading and formatting are memory-bound beyond a few)
@@ -104,6 +104,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     for name in ("fh_searchsorted_f64", "fh_searchsorted_i64"):
         getattr(lib, name).restype = None
         getattr(lib, name).argtypes = (p, i64, p, i64, i32, p)
+    lib.fh_lfilter2.restype = None
+    lib.fh_lfilter2.argtypes = (p, p, p, i64, p, p)
     lib.fh_csv_rows.restype = i64
     lib.fh_csv_rows.argtypes = (i64, i32, p, p, p, p, p, p, i64, i64)
 

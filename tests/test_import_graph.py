@@ -29,6 +29,9 @@ LAZY: dict[tuple[str, str], str] = {
     ("simvehicle.cli", "_scenario"): "simvehicle.tools.plots loads matplotlib, only for --plot",
     ("companion.tools.replay", "run_cli"): "companion.tools.plot loads matplotlib, only for --plot "
                                            "(tests/test_lazy_imports.py)",
+    ("companion.diagnose.closed_loop.command", "_sensor_mode"): "the sensor-only diagnosis loads scipy.signal and "
+                                                                "scipy.stats (about 0.3 s), which the closed-loop "
+                                                                "diagnosis does without (issue 12's time budget)",
     ("companion.recordings.load", "load_recording"): "each reader only for its format: the .tlog reader loads "
                                                      "pymavlink's dialect and the native kernels (about 40 ms), the "
                                                      "importers about 30 ms more; replay and info are measured "

@@ -38,6 +38,26 @@ def test_replay_and_info_load_nothing_heavy(command, flight_a_plain, tmp_path):
     assert r["heavy"] == []
 
 
+def test_the_closed_loop_diagnosis_loads_no_scipy_signal_or_stats(tmp_path):
+    """issue 12's time budget (a quarter of pymavlink's read of an hour-long recording): the
+    closed-loop ``diagnose`` does without scipy.signal and scipy.stats (about 0.3 s to import;
+    its filters are companion.diagnose.filters, its tail probabilities scipy.special's)."""
+    from companion import native
+
+    if native.kernels() is None:
+        pytest.skip("without the compiled kernels the filters are scipy.signal's own")
+    gust = ROOT / "data" / "sitl" / "ardupilot" / "flight_c0_companion.tlog.gz"
+    probe = PROBE.replace("heavy = sorted", "heavy = sorted(m for m in sys.modules if m in ('scipy.signal', "
+                                            "'scipy.stats')) or sorted")
+    out = subprocess.run([sys.executable, "-c", probe, "diagnose", str(gust), "--profile", "ardupilot", "--config",
+                          str(ROOT / "configs" / "ardupilot_sitl.toml"), "--json", str(tmp_path / "d.json")],
+                         capture_output=True, text=True, cwd=ROOT, check=True)
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["code"] == 0
+    assert "scipy" in r["heavy"] and not {"scipy.signal", "scipy.stats"} & set(r["heavy"])
+    assert json.loads((tmp_path / "d.json").read_text())["findings"]
+
+
 def test_parquet_loads_pyarrow_only_when_asked(flight_a_plain, tmp_path):
     pytest.importorskip("pyarrow")
     r = _loaded("replay", str(flight_a_plain), "--parquet", str(tmp_path / "r.parquet"))

@@ -32,7 +32,7 @@
 #define CRC_LEN 2
 
 /* ABI version: companion/native.py refuses a library whose fh_version differs */
-int32_t fh_version(void) { return 10; }
+int32_t fh_version(void) { return 11; }
 
 /* ------------------------------------------------------------------------------------------- */
 /* CRC-16/MCRF4XX (X.25). crc_tab[k][b]: the CRC contribution of byte b followed by k zero bytes
@@ -648,4 +648,22 @@ int64_t fh_csv_rows(int64_t n, int32_t ncols, const int32_t *kind, const void *c
     free(slots);
     free(lens);
     return p - out;
+}
+
+/* ------------------------------------------------------------------------------------------- */
+/* scipy.signal.lfilter of a second-order filter (b, a normalised by a[0]), direct form II
+ * transposed as scipy's RAWFILTER computes it, term for term: y = z0 + b0 x,
+ * z0 = z1 + x b1 - y a1, z1 = x b2 - y a2. z: the initial state, left as the final one. */
+void fh_lfilter2(const double *b, const double *a, const double *x, int64_t n, double *z, double *y) {
+    double z0 = z[0], z1 = z[1];
+    const double b0 = b[0], b1 = b[1], b2 = b[2], a1 = a[1], a2 = a[2];
+    for (int64_t k = 0; k < n; k++) {
+        double xk = x[k];
+        double yk = z0 + b0 * xk;
+        z0 = z1 + xk * b1 - yk * a1;
+        z1 = xk * b2 - yk * a2;
+        y[k] = yk;
+    }
+    z[0] = z0;
+    z[1] = z1;
 }

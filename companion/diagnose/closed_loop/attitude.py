@@ -7,10 +7,10 @@ Per axis (roll, pitch) the paper's attitude loop is the second-order response (e
 to the command u, held over each frame (the command computed at frame k acts over
 [t_k+1, t_k+2], CONVENTIONS.md; ``channels.extract`` already aligns it). Discretised exactly
 (zero-order hold), the response of a whole segment to the recorded commands is one linear
-filter (``scipy.signal.lfilter``) started from the recorded attitude and rate at the segment's
-first frame: an output-error simulation, linear-time, that never sees the velocity loop, so the
-closed loop cannot hide an attitude-loop mismatch. A constant per-axis offset (a level trim of
-the attitude estimate) is removed as a nuisance in every model.
+filter (``scipy.signal.lfilter``'s rule: ``companion.diagnose.filters``) started from the recorded
+attitude and rate at the segment's first frame: an output-error simulation, linear-time, that
+never sees the velocity loop, so the closed loop cannot hide an attitude-loop mismatch. A constant
+per-axis offset (a level trim of the attitude estimate) is removed as a nuisance in every model.
 
 ``attitude_roll``, ``attitude_pitch`` (rad): recorded minus simulated attitude.
 Parameters: ``omega_p`` rad/s, ``zeta`` (effect ``attitude_dynamics``) and ``delay`` s (effect
@@ -23,8 +23,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import linalg, signal
 
+from companion.diagnose import filters
 from companion.diagnose.closed_loop.channels import FlightData
 
 #: a run of at least this many lost (bridged) commands restarts the attitude simulation, and so
@@ -59,6 +59,8 @@ def discretise(omega_p: float, zeta: float, T: float) -> tuple[np.ndarray, np.nd
 
 def expm_discretise(omega_p: float, zeta: float, T: float) -> tuple[np.ndarray, np.ndarray]:
     """(Ad, Bd) by the matrix exponential of the augmented system (reference for tests)."""
+    from scipy import linalg  # only here: the diagnosis itself does not load scipy.linalg
+
     w = omega_p
     M = np.zeros((3, 3))
     M[:2, :2] = np.array([[0.0, 1.0], [-w * w, -2.0 * zeta * w]]) * T
@@ -151,8 +153,8 @@ class AttitudeProblem:
                 um1 = us[0]
                 xm1 = Ainv @ (x0 - Bd * um1)
                 xm2 = Ainv @ (xm1 - Bd * um1)
-                zi = signal.lfiltic(b, a, [xm1[0], xm2[0]], [um1, um1])
-                out[i, s0:s1], _ = signal.lfilter(b, a, us, zi=zi)
+                zi = filters.lfiltic(b, a, [xm1[0], xm2[0]], [um1, um1])
+                out[i, s0:s1], _ = filters.lfilter(b, a, us, zi=zi)
         return out
 
     def _free_rate(self, e: np.ndarray, omega_p: float, zeta: float, fit_mask: np.ndarray | None) -> np.ndarray:
@@ -165,8 +167,8 @@ class AttitudeProblem:
         Ainv = np.linalg.inv(Ad)
         xm1 = Ainv @ np.array([0.0, 1.0])
         xm2 = Ainv @ xm1
-        zi = signal.lfiltic(b, a, [xm1[0], xm2[0]], [0.0, 0.0])
-        h, _ = signal.lfilter(b, a, np.zeros(L), zi=zi)
+        zi = filters.lfiltic(b, a, [xm1[0], xm2[0]], [0.0, 0.0])
+        h, _ = filters.lfilter(b, a, np.zeros(L), zi=zi)
         out = e.copy()
         for s0, s1 in self.segments:
             hs = h[: s1 - s0]

@@ -31,7 +31,6 @@ from companion.diagnose.closed_loop.markdown import write_report
 from companion.diagnose.fitted_model import fitted_findings, heldout_split_s, model_toml, write_model
 from companion.diagnose.report import Report
 from companion.diagnose.report_html import write_html_report
-from companion.diagnose.sensor import api as sensor_diagnose
 from companion.errors import UsageError, check_output, writing
 from companion.recordings.load import Recording, load_recording
 
@@ -56,6 +55,8 @@ def _write_html(diag: Diagnosis, markdown_path: Path) -> Path:
 
 
 def _sensor_mode(args: argparse.Namespace) -> int:
+    from companion.diagnose.sensor import api as sensor_diagnose  # (scipy.signal: only for this mode)
+
     return int(sensor_diagnose.run_sensor_cli(args))
 
 

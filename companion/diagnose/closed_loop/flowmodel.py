@@ -266,6 +266,7 @@ class FlowProblem:
         self._vel_cache = _Cache(4)
         self._geo_cache = _Cache()
         self._phi_cache = _Cache(3)
+        self._shift_cache = _Cache(4)
         self._dPhi = np.zeros_like(self.Phi)
         for a, b in data.segments():
             if b - a > 1:
@@ -326,10 +327,21 @@ class FlowProblem:
         """y(t - delay) at frames ``idx`` (all frames when None) by cubic Hermite interpolation
         between frames from values y and derivatives dy (shape (..., n)), held at each segment's
         ends."""
+        if delay_s == 0.0:
+            return y[..., np.arange(len(self.t)) if idx is None else idx]
+        # the frames and weights depend on the delay and the frames only, not on y: kept for
+        # the next signal shifted alike (a translation shifts two, a Jacobian repeats delays)
+        if idx is None or idx is self.flow.idx:
+            j, w00, w10, w01, w11 = self._shift_cache.get((float(delay_s), float(idx is None)),
+                                                          lambda: self._shift_plan(delay_s, idx))
+        else:
+            j, w00, w10, w01, w11 = self._shift_plan(delay_s, idx)
+        return w00 * y[..., j] + w10 * dy[..., j] + w01 * y[..., j + 1] + w11 * dy[..., j + 1]
+
+    def _shift_plan(self, delay_s: float, idx: np.ndarray | None) -> tuple[np.ndarray, ...]:
+        """``_shifted``'s frames j and Hermite weights (of y[j], dy[j], y[j + 1], dy[j + 1])."""
         t = self.t
         k = np.arange(len(t)) if idx is None else idx
-        if delay_s == 0.0:
-            return y[..., k]
         tq = np.clip(t[k] - delay_s, self._seg_t0[k], t[self._seg_last[k]])
         j = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, len(t) - 2)
         j = np.minimum(j, np.maximum(self._seg_last[k] - 1, 0))
@@ -339,7 +351,7 @@ class FlowProblem:
         h10 = u * (1 - u) ** 2
         h01 = u * u * (3 - 2 * u)
         h11 = u * u * (u - 1)
-        return h00 * y[..., j] + h10 * h * dy[..., j] + h01 * y[..., j + 1] + h11 * h * dy[..., j + 1]
+        return j, h00, h10 * h, h01, h11 * h
 
     def model_translation(self, offset: float, delay_s: float = 0.0, power: int = 1) -> np.ndarray:
         """The plant's translational scene angle in each flow window, delayed by ``delay_s``:

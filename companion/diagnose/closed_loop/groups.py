@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
+from companion.diagnose import filters
 from companion.diagnose.closed_loop.attitude import AttitudeProblem
 from companion.diagnose.closed_loop.channels import FlightData
 from companion.diagnose.closed_loop.flowmodel import AXIS_SIGN, IDX, NOMINAL, PARAMS, FlowProblem
@@ -287,10 +288,8 @@ def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0,
     integral(gyro) + tau (gyro - gyro(0)). None when the gyro is not recorded at the frame rate (then the attitude)."""
     if np.mean(data.gyro_rec) < 0.75:
         return None
-    from scipy import signal as sg
-
     fs = 1.0 / data.frame_s
-    b, a = sg.butter(2, crossover_hz / (0.5 * fs))
+    b, a = filters.butter2_lowpass(crossover_hz / (0.5 * fs))
     out = []
     for ang, gyr, gang, gfine in ((data.pitch_rad, data.gyro_y_rad_s, data.gyro_angle_y_rad, data.gyro_fine_y_rad_s),
                                   (data.roll_rad, data.gyro_x_rad_s, data.gyro_angle_x_rad, data.gyro_fine_x_rad_s)):
@@ -313,7 +312,7 @@ def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0,
                 # trapezoid) averages g over neighbouring frames and undoes too little of the lag
                 # at high frequency (a rotation gain or a flow scale of 1-2 % that is not there)
                 G = G + gyro_lag_s * (g - g[0])
-            fused[a0:b0] = G + sg.filtfilt(b, a, ang[a0:b0] - G)
+            fused[a0:b0] = G + filters.filtfilt(b, a, ang[a0:b0] - G)
         out.append(fused)
     return out[0], out[1]
 
@@ -342,13 +341,11 @@ def regressor_scene_angle(base: FlowProblem, rotation: tuple[np.ndarray, np.ndar
     the same sensor's reading at both frequencies, or reading it through a geometry far from the
     nominal (a yaw of 12 deg, a scale of 1.2) treats the two parts differently, and the
     difference, second order in the geometry (1 - cos 12 deg = 2 %), is fitted as a flow scale."""
-    from scipy import signal as sg
-
     data = base.data
     p_a = NOMINAL if p_anchor is None else p_anchor
     X, _ = base.flow_velocity(p_a)
     fs = 1.0 / data.frame_s
-    b, a = sg.butter(2, VELOCITY_CROSSOVER_HZ / (0.5 * fs))
+    b, a = filters.butter2_lowpass(VELOCITY_CROSSOVER_HZ / (0.5 * fs))
     phi = np.zeros((2, data.n))
     t = data.t_s
     kx, ky, yaw, delay, offset = (float(p_a[IDX[k]]) for k in ("scale_x", "scale_y", "yaw", "delay", "offset"))
@@ -365,7 +362,7 @@ def regressor_scene_angle(base: FlowProblem, rotation: tuple[np.ndarray, np.ndar
             acc = np.stack([AXIS_SIGN[i] * base.g * np.tan(rotation[i][a0:b0]) for i in (0, 1)])
             vt = np.concatenate([np.zeros((2, 1)), np.cumsum(0.5 * (acc[:, 1:] + acc[:, :-1]) * np.diff(ts), axis=1)],
                                 axis=1)
-            v = vt + sg.filtfilt(b, a, v - vt, axis=1)
+            v = vt + filters.filtfilt(b, a, v - vt, axis=1)
         xf = np.concatenate([np.zeros((2, 1)), np.cumsum(0.5 * (v[:, 1:] + v[:, :-1]) * np.diff(ts), axis=1)],
                             axis=1)
         y = np.concatenate([np.zeros((2, 1)), np.cumsum(np.diff(xf, axis=1) / (base._Amid[a0:b0 - 1] - offset),

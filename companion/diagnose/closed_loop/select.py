@@ -35,7 +35,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 
 @dataclass(frozen=True)
@@ -542,8 +542,9 @@ class Selector:
         except np.linalg.LinAlgError:
             w = math.inf
         # Wald chi-square with len(idx) degrees of freedom -> the normal z of the same tail probability
-        pval = float(stats.chi2.sf(w, len(idx))) if math.isfinite(w) else 0.0
-        z = float(stats.norm.isf(max(pval, 1e-300) / 2)) if pval < 1 else 0.0
+        # (scipy.stats' chi2.sf and norm.isf are these special functions; scipy.stats costs 0.3 s to import)
+        pval = float(special.chdtrc(len(idx), w)) if math.isfinite(w) else 0.0
+        z = float(-special.ndtri(max(pval, 1e-300) / 2)) if pval < 1 else 0.0
         exact = with_.heldout_rows is not None and without.heldout_rows is not None
         localised = self.g.searched_effect in effects and self.g.null_pvalue is not None
         z_ho, n_ho = 0.0, 0

@@ -1,0 +1,114 @@
+"""The few linear filters the diagnosis uses, without importing ``scipy.signal``.
+
+``scipy.signal`` (with ``scipy.stats``, which it loads) takes about 0.3 s to import, a twentieth
+of the whole ``diagnose`` command on an hour-long recording and more than its own work on a short
+one. The diagnosis needs only a second-order Butterworth low-pass, ``lfilter``/``lfiltic`` of
+second-order sections and ``filtfilt``: they are written here with ``scipy.signal``'s rules and
+defaults, and ``tests/test_filters.py`` holds each equal to ``scipy.signal``'s, option by option.
+
+The recursion of ``lfilter`` (a loop over samples) runs in the compiled kernels
+(``companion.native``, ``fh_lfilter2``: scipy's direct form II transposed, term for term); without
+them (no C compiler, ``FLOWHOLD_NATIVE=0``) ``scipy.signal.lfilter`` itself runs, imported then.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from companion import native
+
+
+def butter2_lowpass(wn: float) -> tuple[np.ndarray, np.ndarray]:
+    """``scipy.signal.butter(2, wn)``: the digital second-order Butterworth low-pass with cut-off
+    ``wn`` (a fraction of the Nyquist frequency, 0 < wn < 1), by the bilinear transform with
+    prewarping: K = tan(pi wn / 2), b = K^2 (1, 2, 1) / D, a = (1, 2 (K^2 - 1) / D,
+    (1 - sqrt2 K + K^2) / D), D = 1 + sqrt2 K + K^2."""
+    if not 0.0 < wn < 1.0:
+        raise ValueError(f"a digital filter's cut-off must lie between 0 and 1 (Nyquist), not {wn}")
+    k = math.tan(math.pi * wn / 2.0)
+    d = 1.0 + math.sqrt(2.0) * k + k * k
+    b = np.array([k * k, 2.0 * k * k, k * k]) / d
+    a = np.array([1.0, 2.0 * (k * k - 1.0) / d, (1.0 - math.sqrt(2.0) * k + k * k) / d])
+    return b, a
+
+
+def _second_order(b: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """b and a as three coefficients each, normalised by a[0] (as scipy's lfilter does)."""
+    b = np.asarray(b, dtype=float)
+    a = np.asarray(a, dtype=float)
+    if b.ndim != 1 or a.ndim != 1 or not 1 <= len(b) <= 3 or not 1 <= len(a) <= 3 or a[0] == 0:
+        raise ValueError("only filters of order up to 2 with a[0] != 0")
+    b3 = np.zeros(3)
+    a3 = np.zeros(3)
+    b3[:len(b)] = b
+    a3[:len(a)] = a
+    return b3 / a3[0], a3 / a3[0]
+
+
+def lfiltic(b: np.ndarray, a: np.ndarray, y: np.ndarray | Sequence[float],
+            x: np.ndarray | Sequence[float] | None = None) -> np.ndarray:
+    """``scipy.signal.lfiltic(b, a, y, x)`` for a filter of order 2: the state (2,) of
+    ``lfilter`` that continues from the past outputs y = [y[-1], y[-2]] and inputs
+    x = [x[-1], x[-2]] (zeros where not given)."""
+    b3, a3 = _second_order(b, a)
+    yy = np.zeros(2)
+    xx = np.zeros(2)
+    ya = np.asarray(y, dtype=float)
+    yy[:min(len(ya), 2)] = ya[:2]
+    if x is not None:
+        xa = np.asarray(x, dtype=float)
+        xx[:min(len(xa), 2)] = xa[:2]
+    # scipy: zi[m] = sum(b[m + 1:] * x[:M - m]) - sum(a[m + 1:] * y[:N - m]) (b, a as given, a[0] = 1 here)
+    zi = np.array([b3[1] * xx[0] + b3[2] * xx[1], b3[2] * xx[0]])
+    zi -= np.array([a3[1] * yy[0] + a3[2] * yy[1], a3[2] * yy[0]])
+    return zi
+
+
+def lfilter(b: np.ndarray, a: np.ndarray, x: np.ndarray, zi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``scipy.signal.lfilter(b, a, x, zi=zi)`` for a filter of order 2 and a 1-D x: the output
+    and the final state."""
+    b3, a3 = _second_order(b, a)
+    x = np.ascontiguousarray(x, dtype=float)
+    z = np.array(zi, dtype=float).reshape(2)
+    if x.ndim == 1 and len(x) == 0:  # (scipy leaves the final state uninitialised here)
+        return x.copy(), z
+    lib = native.kernels()
+    if lib is None or x.ndim != 1:
+        from scipy import signal  # the definition, where the kernels are not loaded
+
+        y, zf = signal.lfilter(b3, a3, x, zi=z)
+        return np.asarray(y), np.asarray(zf)
+    y = np.empty_like(x)
+    lib.fh_lfilter2(b3.ctypes.data, a3.ctypes.data, x.ctypes.data, len(x), z.ctypes.data, y.ctypes.data)
+    return y, z
+
+
+def lfilter_zi(b: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``scipy.signal.lfilter_zi(b, a)`` for order 2: the state of the step response's steady
+    state, solving (I - companion(a)^T) zi = b[1:] - a[1:] b[0]."""
+    b3, a3 = _second_order(b, a)
+    companion_t = np.array([[-a3[1], 1.0], [-a3[2], 0.0]])
+    return np.linalg.solve(np.eye(2) - companion_t, b3[1:] - a3[1:] * b3[0])
+
+
+def filtfilt(b: np.ndarray, a: np.ndarray, x: np.ndarray, axis: int = -1) -> np.ndarray:
+    """``scipy.signal.filtfilt(b, a, x, axis=axis)`` with its defaults (odd extension of
+    3 max(len(a), len(b)) samples at each end, each pass started in the steady state of the first
+    sample) for a filter of order 2."""
+    x = np.asarray(x, dtype=float)
+    padlen = 3 * max(len(a), len(b))
+    xm = np.moveaxis(x, axis, -1)
+    if xm.shape[-1] <= padlen:
+        raise ValueError(f"filtfilt: the signal must be longer than {padlen} samples")
+    zi = lfilter_zi(b, a)
+    out = np.empty_like(xm)
+    for idx in np.ndindex(*xm.shape[:-1]):
+        row = xm[idx]
+        ext = np.concatenate((2 * row[0] - row[padlen:0:-1], row, 2 * row[-1] - row[-2:-(padlen + 2):-1]))
+        y, _ = lfilter(b, a, ext, zi * ext[0])
+        y, _ = lfilter(b, a, y[::-1], zi * y[-1])
+        out[idx] = y[::-1][padlen:-padlen]
+    return np.moveaxis(out, -1, axis)
