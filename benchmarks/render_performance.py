@@ -124,6 +124,31 @@ def targets_table(n: dict[str, Any]) -> list[str]:
     return rows
 
 
+def diagnose_budget(n: dict[str, Any]) -> list[str]:
+    """Issue 12's time budget for ``diagnose``: under 10 s for a 150 s recording (the diagnose
+    section's, whole command with start-up), and under a quarter of pymavlink's read of the same
+    file for an hour (the growth rows: each length's whole command against pymavlink's loop over
+    that file, measured one after the other in this run)."""
+    rows = ["| recording | `diagnose`, whole command | pymavlink's loop over the same file | diagnose / loop "
+            "(wall; CPU) | the issue asks | verdict |", "|---|---|---|---|---|---|"]
+    short = n.get("diagnose_150s")
+    if short and short.get("wall_s") is not None:
+        rows.append(f"| closed-loop, 2.5 min | {_s(short['wall_s'])} (the diagnosis itself "
+                    f"{_s(short.get('diagnose_s'))}) | | | under 10 s | {_verdict(short['wall_s'] < 10.0)} |")
+    for g in n.get("growth", []):
+        d, b = g.get("diagnose") or {}, g.get("baseline") or {}
+        if d.get("wall_s") is None or not b.get("loop_s"):
+            continue
+        ratio = d["wall_s"] / b["loop_s"]
+        cpu = (d["cpu_s"] / b["loop_cpu_s"]) if d.get("cpu_s") and b.get("loop_cpu_s") else None
+        asks = "under a quarter of the loop" if g["minutes"] >= 60 else ""
+        verdict = _verdict(ratio < 0.25) if g["minutes"] >= 60 else ""
+        rows.append(f"| closed-loop, {g['minutes']:g} min | {_s(d['wall_s'])} (CPU {_s(d.get('cpu_s'))}) | "
+                    f"{_s(b['loop_s'])} (CPU {_s(b.get('loop_cpu_s'))}) | {ratio:.2f}; "
+                    f"{'-' if cpu is None else f'{cpu:.2f}'} | {asks} | {verdict} |")
+    return rows if len(rows) > 2 else []
+
+
 def load_caveat(n: dict[str, Any]) -> list[str]:
     """A sentence when pymavlink's loop got less than 90 % of a core over its run (its CPU time
     against its wall time: other jobs shared the machine): then its wall time, the denominator of
@@ -481,6 +506,10 @@ def render(results: dict[str, Any]) -> str:
         "imports, reading, the work and the output file. CPU time is user + system time of the process (for the "
         "baseline, of its loop): the load of other jobs lengthens the wall time more than the CPU time." +
         bytecode_text(m, long), "",
+        *((["## The time budget of issue 12 (`diagnose`)", "", *diagnose_budget(n), "",
+             "Each growth row's `diagnose` and pymavlink's loop ran once, one after the other, on the same "
+             "generated flight (the growth section below); the 2.5-minute row is the diagnose section's."
+             , ""]) if diagnose_budget(n) else []),
         "## Recording by recording", "",
         *recordings_table(recs), "",
         "Notes on the files. The SITL flights are ArduCopter's own recordings (data/sitl/ardupilot, decompressed "
