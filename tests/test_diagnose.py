@@ -24,8 +24,9 @@ from scipy.optimize import least_squares
 from companion.config import GyroBias, load_config, with_effects
 from companion.diagnose.closed_loop.attitude import AttitudeProblem, discretise, expm_discretise
 from companion.diagnose.closed_loop.channels import FlightData
+from companion.diagnose.closed_loop.excitation import loop_form
 from companion.diagnose.closed_loop.flowmodel import IDX, NOMINAL, FlowProblem, ramp_integral
-from companion.diagnose.closed_loop.groups import GyroProblem
+from companion.diagnose.closed_loop.groups import GyroProblem, attitude_group
 from companion.diagnose.closed_loop.select import Candidate, Group, Selector, Settings
 from companion.diagnose.closed_loop.sparse import Term, sparse_fit, stlsq
 from companion.diagnose.closed_loop.wind import kernel_regressor, locate
@@ -96,6 +97,83 @@ def test_attitude_output_error_is_zero_at_the_true_loop():
     ap = AttitudeProblem(data)
     assert np.abs(ap.residual(4.5, 0.6)).max() < 1e-12
     assert np.sqrt(np.mean(ap.residual(5.4, 0.71) ** 2)) > 1e-3
+
+
+def _loop_flight(shaper_tau_s: float, omega_p: float, zeta: float, seed: int, n: int = 6000,
+                 noise_deg: float = 0.05) -> FlightData:
+    """120 s of attitude: per axis, commands that step every second (+-0.15 rad) with 0.02 rad of
+    frame-to-frame jitter (a noisy velocity estimate's), through a first-order shaper (time
+    constant ``shaper_tau_s``, exact per frame; 0: none) and the exact zero-order-hold loop
+    (omega_p, zeta), plus ``noise_deg`` of white attitude noise."""
+    rng = np.random.default_rng(seed)
+    T = 0.02
+    t = np.arange(n) * T
+    a = math.exp(-T / shaper_tau_s) if shaper_tau_s > 0 else 0.0
+    Ad, Bd, _b, _a = discretise(omega_p, zeta, T)
+    us, ys = [], []
+    for _axis in range(2):
+        u = np.repeat(rng.uniform(-0.15, 0.15, n // 50 + 1), 50)[:n] + 0.02 * rng.standard_normal(n)
+        u[:50] = 0.0
+        s, x, y = 0.0, np.zeros(2), np.zeros(n)
+        for k in range(n):
+            y[k] = x[0]
+            s = a * s + (1.0 - a) * u[k]
+            x = Ad @ x + Bd * s
+        us.append(u)
+        ys.append(y + math.radians(noise_deg) * rng.standard_normal(n))
+    return _flight_data(t, roll_rad=ys[0], pitch_rad=ys[1], roll_cmd_rad=us[0], pitch_cmd_rad=us[1])
+
+
+def _loop_form_of(data: FlightData):
+    g, ap = attitude_group(data, load_config())
+    chosen, final, _ev = Selector(g, Settings(), 0.0).select()
+    return chosen, final, loop_form(g, ap, chosen, final.p, 0.0, Settings())
+
+
+@pytest.mark.parametrize("noise_deg", [0.05, 1e-6])
+def test_a_second_order_loop_fits_alike_on_the_commands_slow_and_fast_parts(noise_deg):
+    """The loop-form check (``excitation``) on what eq. 26 itself makes: the fits on the residual's
+    slow and fast parts agree with the truth and with each other by less than a size that matters
+    (Omega_p 5 %, zeta 0.05: ``sizes``), and no uncertainty is widened. With 0.05 deg of noise they
+    agree within their uncertainties too; on a nearly noise-free record the uncertainties are tiny
+    and the parts can be told apart by round-off, which the size rule does not report."""
+    chosen, final, lf = _loop_form_of(_loop_flight(0.0, 9.0, 0.7, seed=1, noise_deg=noise_deg))
+    assert chosen == ["attitude_dynamics"] and lf is not None
+    assert lf.params == ("omega_p", "zeta")
+    assert lf.split_hz == pytest.approx(final.p[0] / (2 * math.pi))
+    for fit in (lf.slow, lf.fast):
+        assert abs(fit[0] / 9.0 - 1) < 0.05 and abs(fit[1] - 0.7) < 0.05, fit
+    if noise_deg >= 0.05:
+        for fit, sd in ((lf.slow, lf.slow_sd), (lf.fast, lf.fast_sd)):
+            assert np.all(np.abs(fit - [9.0, 0.7]) <= 4 * sd), (fit, sd)
+        assert lf.z < lf.z_min
+    assert not lf.matters and not lf.depends
+    assert lf.widened("omega_p", 0.1) == 0.1
+
+
+def test_a_shaped_command_is_said_to_be_outside_the_second_order_loop():
+    """A first-order shaper (0.15 s) ahead of a fast loop (40 rad/s), as ArduCopter's input
+    shaping: no second-order loop is right, the slow and fast parts' fits differ by far more than
+    z_min sigma, and each uncertainty then includes half their spread."""
+    _chosen, _final, lf = _loop_form_of(_loop_flight(0.15, 40.0, 0.9, seed=2))
+    assert lf is not None and lf.depends
+    assert lf.z > 2 * lf.z_min
+    half = lf.spread()
+    for name in lf.params:
+        assert lf.widened(name, 0.01) == pytest.approx(math.hypot(0.01, half[name]))
+    assert "depends on what is flown" in lf.describe({"omega_p": "rad/s"})
+
+
+def test_the_loop_form_check_keeps_to_the_time_budget():
+    """Two more fits of the attitude group: not run, and said, when they would take longer than the
+    selection's time budget (here none at all)."""
+    data = _loop_flight(0.15, 40.0, 0.9, seed=2, n=1500)
+    g, ap = attitude_group(data, load_config())
+    chosen, final, _ev = Selector(g, Settings(), 0.0).select()
+    assert "attitude_dynamics" in chosen
+    notes: list[str] = []
+    assert loop_form(g, ap, chosen, final.p, 0.0, Settings(time_budget_s=0.0), notes) is None
+    assert len(notes) == 1 and "not checked" in notes[0]
 
 
 def test_gyro_channel_reads_a_bias_exactly():

@@ -21,6 +21,7 @@ from companion.config import Config
 from companion.diagnose.advice import actions, recorded_parameters
 from companion.diagnose.closed_loop.attitude import AttitudeProblem
 from companion.diagnose.closed_loop.channels import FlightData, extract
+from companion.diagnose.closed_loop.excitation import LOOP_EFFECTS, LoopForm, loop_form
 from companion.diagnose.closed_loop.explain import explain
 from companion.diagnose.closed_loop.flowmodel import IDX, FlowProblem
 from companion.diagnose.closed_loop.groups import (
@@ -71,6 +72,8 @@ class GroupResult:
     sparse: dict[str, SparseFit] = field(default_factory=dict)
     unexplained_windows: dict[str, list[Interval]] = field(default_factory=dict)
     mismatch_windows: dict[str, list[Interval]] = field(default_factory=dict)
+    #: the attitude group: the chosen loop refitted on the commands' slow and fast parts (``excitation``)
+    loop_form: LoopForm | None = None
 
 
 @dataclass
@@ -277,6 +280,9 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
     for g, stage in ((ga, STAGES[1]), (gg, STAGES[2])):
         t = time.perf_counter()
         results[g.name] = _fit_group(g, settings, t0)
+        if g is ga:  # is the chosen loop the vehicle's, or the fit of what this flight flew?
+            res = results[g.name]
+            res.loop_form = loop_form(g, ap, res.chosen, res.final.p, t0, settings, res.selector.notes)
         timings[f"{g.name}_s"] = time.perf_counter() - t
         step(stage)
     # the flow is compared with the rotation of the gyro above 1 Hz, undone of the lag found
@@ -311,6 +317,8 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
             report.baseline_rms[ch] = float(np.sqrt(np.mean(res.r_nominal[c] ** 2)))
         for e, comp in res.evidence.items():
             f = _finding(e, comp, res, data, cfg, cond)
+            if res.loop_form is not None and e in res.chosen and e in LOOP_EFFECTS:
+                _with_loop_form(f, res.loop_form)
             if comp.significant and e in ALIKE:
                 f.alternatives = _alternatives(e, res)
                 if e == "flow_rotation_gain" and not lever_arm_observable(data):
@@ -333,6 +341,16 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
     step(STAGES[4])
     timings["report_s"] = time.perf_counter() - t
     return Diagnosis(data, cfg, report, results, ap, gp, fp, fstate, timings)
+
+
+def _with_loop_form(f: Finding, lf: LoopForm) -> None:
+    """A chosen attitude effect with the loop-form check (``excitation``): its evidence always;
+    when the form depends on what is flown, the explanation says so and each parameter's
+    uncertainty includes half the spread between the slow and the fast part's fits."""
+    f.evidence["excitation"] = lf.to_json()
+    if lf.depends:
+        f.uncertainty = {k: lf.widened(k, v) for k, v in f.uncertainty.items()}
+        f.explanation += lf.describe({k: f.unit(k) for k in lf.params})
 
 
 def _fmt(p: dict[str, float]) -> str:
@@ -447,6 +465,10 @@ def headline(report: Report) -> str:
     if found:
         names = [f.effect + (f" (or {' or '.join(a['effect'] for a in f.alternatives)}: this flight cannot tell "
                              "them apart)" if f.alternatives else "") for f in found]
+        # the attitude loop's form outside the model (``excitation``), said once, at its first finding
+        loop = [i for i, f in enumerate(found) if f.evidence.get("excitation", {}).get("depends_on_commands")]
+        if loop:
+            names[loop[0]] += " (not the model's second-order loop: its fit depends on what is flown)"
         parts.append(f"the model leaves out {', '.join(names)}")
     if misfit:
         u = misfit[0]
