@@ -52,6 +52,10 @@ ALIKE = {
     "range_offset": ("flow_scale",),
     "linear_drag": ("quadratic_drag",),
     "quadratic_drag": ("linear_drag",),
+    # below the loop's bandwidth a second-order loop lags its command by 2 zeta / Omega_p: a
+    # command delay d and a loop slower by that much answer slow commands alike
+    "attitude_dynamics": ("attitude_delay",),
+    "attitude_delay": ("attitude_dynamics",),
 }
 #: a sparse model must predict at least this fraction of a residual's held-out sum of squares, and
 #: what it predicts must be larger than the channel's resolution, to be reported as unexplained
