@@ -153,6 +153,22 @@ static inline int64_t claimed_end(const uint8_t *buf, int64_t s) {
 
 static inline int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
 
+/* Whether the record chain goes on for two more records after a packet ending at end (which fits:
+ * end <= n_bytes): the file ends there, or the next record's STX follows the time header, and
+ * after that record either the file ends or another STX follows (fh_scan's "chained"). */
+static inline int chained_after(const uint8_t *buf, int64_t n_bytes, int64_t end) {
+    if (end == n_bytes) return 1;
+    int64_t nxt = min64(end + TIME_HEADER_LEN, n_bytes);
+    if (!is_stx(buf[nxt])) return 0;
+    int64_t end2 = claimed_end(buf, nxt);
+    return end2 == n_bytes || is_stx(buf[min64(end2 + TIME_HEADER_LEN, n_bytes)]);
+}
+
+/* The message id in the header at h (MAVLink 2: 24 bits; MAVLink 1: one byte). */
+static inline int64_t msgid_of(const uint8_t *h) {
+    return h[0] == STX_V2 ? ((int64_t)h[7] | (int64_t)h[8] << 8 | (int64_t)h[9] << 16) : h[5];
+}
+
 /* Pass 1 of _find_packets over the candidate packet starts (bytes 0xFD, 0xFE) in [pos, stop):
  * a candidate from which the record chain goes on for two more records and whose packet fits in
  * the file ("chained") is a good packet if its header is decodable (a message id with
@@ -183,15 +199,7 @@ int64_t fh_scan(const uint8_t *buf, int64_t n_bytes, int64_t pos, int64_t stop, 
             }
             int64_t end = claimed_end(buf, s);
             if (end > n_bytes) continue; /* does not fit */
-            int chained = end == n_bytes;
-            if (!chained) {
-                int64_t nxt = min64(end + TIME_HEADER_LEN, n_bytes);
-                if (is_stx(buf[nxt])) {
-                    int64_t end2 = claimed_end(buf, nxt);
-                    chained = end2 == n_bytes || is_stx(buf[min64(end2 + TIME_HEADER_LEN, n_bytes)]);
-                }
-            }
-            if (!chained) {
+            if (!chained_after(buf, n_bytes, end)) {
                 other[no++] = s;
                 continue;
             }
@@ -200,7 +208,7 @@ int64_t fh_scan(const uint8_t *buf, int64_t n_bytes, int64_t pos, int64_t stop, 
             int64_t plen = h[1];
             uint8_t flags = v2 ? h[2] : 0;
             int64_t hdr = v2 ? HEADER_LEN_V2 : HEADER_LEN_V1;
-            int64_t msgid = v2 ? ((int64_t)h[7] | (int64_t)h[8] << 8 | (int64_t)h[9] << 16) : h[5];
+            int64_t msgid = msgid_of(h);
             int64_t id = msgid < tab_len - 1 ? msgid : tab_len - 1;
             if (!known[id] || (flags & 0xFE)) continue;
             int64_t covered = hdr - 1 + plen;
@@ -243,25 +251,13 @@ int64_t fh_count(const uint8_t *buf, int64_t n_bytes, int64_t pos, int64_t stop,
             continue;
         }
         int64_t end = claimed_end(buf, s);
-        int chained = 0;
-        if (end <= n_bytes) {
-            chained = end == n_bytes;
-            if (!chained) {
-                int64_t nxt = min64(end + TIME_HEADER_LEN, n_bytes);
-                if (is_stx(buf[nxt])) {
-                    int64_t end2 = claimed_end(buf, nxt);
-                    chained = end2 == n_bytes || is_stx(buf[min64(end2 + TIME_HEADER_LEN, n_bytes)]);
-                }
-            }
-        }
-        if (!chained) {
+        if (end > n_bytes || !chained_after(buf, n_bytes, end)) {
             pos++;
             continue;
         }
         const uint8_t *h = buf + s;
-        int v2 = h[0] == STX_V2;
-        uint8_t flags = v2 ? h[2] : 0;
-        int64_t msgid = v2 ? ((int64_t)h[7] | (int64_t)h[8] << 8 | (int64_t)h[9] << 16) : h[5];
+        uint8_t flags = h[0] == STX_V2 ? h[2] : 0;
+        int64_t msgid = msgid_of(h);
         int64_t id = msgid < tab_len - 1 ? msgid : tab_len - 1;
         if (known[id] && !(flags & 0xFE)) count++;
         pos = end + TIME_HEADER_LEN;
