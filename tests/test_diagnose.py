@@ -564,3 +564,16 @@ def test_ardupilot_flight_is_diagnosed_and_its_findings_improve_the_heldout_fit(
     assert not {"gyro_bias", "wind_force", "flow_scale", "range_offset", "flow_yaw_misalignment"} & set(sig)
     # ArduCopter's attitude loop is not the paper's Omega_p = 5.4, zeta = 0.71: it answers faster
     assert "attitude_dynamics" in sig and sig["attitude_dynamics"]["parameters"]["omega_p"] > 5.4
+
+
+def test_a_wald_chi_square_becomes_the_normal_z_of_its_tail():
+    """``select.z_of_chi2``, the one conversion the finder and the loop-form check use: with one
+    degree of freedom a chi-square is a squared normal, so w = z^2 gives z back (closed form);
+    more degrees of freedom give less z for the same w; an infinite w is capped at p = 1e-300."""
+    from companion.diagnose.closed_loop.select import z_of_chi2
+
+    for z in (0.5, 2.0, 3.0, 6.0):
+        assert z_of_chi2(z * z, 1) == pytest.approx(z, rel=1e-9)
+    assert z_of_chi2(9.0, 3) < 3.0
+    assert z_of_chi2(0.0, 2) == 0.0
+    assert z_of_chi2(math.inf, 1) == pytest.approx(37.07, abs=0.01)

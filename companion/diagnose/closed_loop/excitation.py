@@ -38,11 +38,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import special
 
 from companion.diagnose import filters
 from companion.diagnose.closed_loop.attitude import AttitudeProblem
-from companion.diagnose.closed_loop.select import Group, Selector, Settings
+from companion.diagnose.closed_loop.select import Group, Selector, Settings, z_of_chi2
 from companion.diagnose.closed_loop.sizes import threshold
 
 #: the attitude effects whose parameters are refitted on each part
@@ -211,8 +210,7 @@ def loop_form(g: Group, ap: AttitudeProblem, chosen: Sequence[str], p_whole: np.
         rank = int(np.linalg.matrix_rank(cov))
         if rank > 0:
             chi2 = float(d @ np.linalg.pinv(cov) @ d)
-            pval = float(special.chdtrc(rank, chi2))
-            z = float(-special.ndtri(max(pval, 1e-300) / 2)) if pval < 1 else 0.0
+            z = z_of_chi2(chi2, rank)
     # the difference must matter by the size rules of the effects (``sizes``): a 0.2 % change of
     # zeta is certain on a noise-free record yet describes the same loop
     names = [g.params[i] for i in free]

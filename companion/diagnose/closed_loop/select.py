@@ -38,6 +38,15 @@ import numpy as np
 from scipy import special
 
 
+def z_of_chi2(w: float, dof: int) -> float:
+    """The two-sided normal z with the tail probability of ``w`` under a chi-square with ``dof``
+    degrees of freedom (a Wald statistic turned into z; inf counts as certain, z capped at
+    p = 1e-300). scipy.stats' chi2.sf and norm.isf are these special functions; scipy.stats costs
+    0.3 s to import."""
+    pval = float(special.chdtrc(dof, w)) if math.isfinite(w) else 0.0
+    return float(-special.ndtri(max(pval, 1e-300) / 2)) if pval < 1 else 0.0
+
+
 @dataclass(frozen=True)
 class Candidate:
     """An effect of CONVENTIONS.md (or an added one) and the group parameters it frees.
@@ -541,10 +550,7 @@ class Selector:
                 else math.inf
         except np.linalg.LinAlgError:
             w = math.inf
-        # Wald chi-square with len(idx) degrees of freedom -> the normal z of the same tail probability
-        # (scipy.stats' chi2.sf and norm.isf are these special functions; scipy.stats costs 0.3 s to import)
-        pval = float(special.chdtrc(len(idx), w)) if math.isfinite(w) else 0.0
-        z = float(-special.ndtri(max(pval, 1e-300) / 2)) if pval < 1 else 0.0
+        z = z_of_chi2(w, len(idx))
         exact = with_.heldout_rows is not None and without.heldout_rows is not None
         localised = self.g.searched_effect in effects and self.g.null_pvalue is not None
         z_ho, n_ho = 0.0, 0
