@@ -127,7 +127,8 @@ def run_one(i: int, seed: int, out: str, timeout_s: float, oracle: bool = False)
     report = json.loads(rep_path.read_text())
     res["status"] = "ok"
     res["score"] = score(truth, report)
-    res["found"] = [{"effect": f["effect"], "parameters": f.get("parameters", {})}
+    res["found"] = [{"effect": f["effect"], "parameters": f.get("parameters", {}),
+                     "uncertainty": f.get("uncertainty", {})}
                     for f in report.get("findings", []) if f.get("significant")]
     res["n_unexplained"] = len(report.get("unexplained", []) or [])
     if oracle:
@@ -493,6 +494,57 @@ def oracle_section(results: list[dict[str, Any]], oracle_at: str = "") -> list[s
     return lines + [""]
 
 
+def pulls(results: list[dict[str, Any]]) -> dict[str, list[tuple[float, str]]]:
+    """Per scored parameter ("effect.param"), the (found - true) / stated 1-sigma of every true
+    effect the finder named (the finding itself, not an alternative), with the recording's name.
+    Wind windows and vector forces and parameters without a finite positive sigma are left out."""
+    out: dict[str, list[tuple[float, str]]] = defaultdict(list)
+    for r in results:
+        if r.get("status") != "ok":
+            continue
+        for f in r.get("found", []):
+            e = f["effect"]
+            truth = r.get("truth_effects", {}).get(e)
+            if truth is None or e == "wind_force":
+                continue
+            for k in TOLERANCES.get(e, {}):
+                v, sd, tv = f.get("parameters", {}).get(k), (f.get("uncertainty") or {}).get(k), truth.get(k)
+                if not all(isinstance(x, (int, float)) for x in (v, sd, tv)):
+                    continue
+                if not (math.isfinite(sd) and sd > 0 and math.isfinite(v)):
+                    continue
+                out[f"{e}.{k}"].append(((v - tv) / sd, r["name"]))
+    return out
+
+
+def uncertainty_section(results: list[dict[str, Any]]) -> list[str]:
+    """How true the stated 1-sigma uncertainties are, against the generator's truth (issue 12:
+    "make the stated uncertainty true"): per parameter, the share of named true effects whose
+    truth lies within 1 and 2 stated sigma (68 % and 95 % when the uncertainty is true), the median
+    |pull| (0.67) and the largest."""
+    pu = pulls(results)
+    if not pu:
+        return []
+    lines = ["## Stated uncertainty against the truth", "",
+             "For every true effect the finder named, pull = (found - true) / stated 1-sigma, per scored parameter. "
+             "Were the stated uncertainty true, 68 % of pulls would lie within 1, 95 % within 2, and the median "
+             "|pull| would be 0.67. A miss out of tolerance with a small pull is a flight that does not pin the "
+             "parameter down and says so; a large pull is an uncertainty stated too small.", "",
+             "| parameter | named | within 1 sigma | within 2 sigma | median abs pull | largest abs pull |",
+             "|---|---|---|---|---|---|"]
+    alls: list[float] = []
+    for key in sorted(pu):
+        z = [abs(p) for p, _ in pu[key]]
+        alls += z
+        worst = max(pu[key], key=lambda x: abs(x[0]))
+        lines.append(f"| {key} | {len(z)} | {100 * sum(x <= 1 for x in z) / len(z):.0f} % | "
+                     f"{100 * sum(x <= 2 for x in z) / len(z):.0f} % | {statistics.median(z):.2f} | "
+                     f"{abs(worst[0]):.3g} ({worst[1]}) |")
+    lines.append(f"| all | {len(alls)} | {100 * sum(x <= 1 for x in alls) / len(alls):.0f} % | "
+                 f"{100 * sum(x <= 2 for x in alls) / len(alls):.0f} % | {statistics.median(alls):.2f} | - |")
+    return lines + [""]
+
+
 def markdown(results: list[dict[str, Any]], *, n: int, seed: int, timeout_s: float, workers: int,
              finder: str = "", oracle_at: str = "") -> str:
     t = totals(results)
@@ -577,7 +629,8 @@ def markdown(results: list[dict[str, Any]], *, n: int, seed: int, timeout_s: flo
               "`quadratic_drag` is not false when an unexplained entry names a velocity-squared term (still a miss); "
               "a true `gyro_lag` left as an unexplained gyro term that mentions a lag is a hit when nothing wrong is "
               "named. rx, ry of `flow_lever_arm` are not scored."]
-    lines += [""] + oracle_section(results, oracle_at)
+    lines += [""] + uncertainty_section(results)
+    lines += oracle_section(results, oracle_at)
     lines += ["## Breakdowns", ""]
     lines += _breakdown(results, lambda r: r.get("profile", "?"), "profile") + [""]
     lines += _breakdown(results, lambda r: r.get("loss", "?"), "recording loss") + [""]

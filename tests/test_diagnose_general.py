@@ -69,7 +69,7 @@ class _CyclingSelector(Selector):
             raise RuntimeError("the selection does not end")
         return _Score(tuple(effects), cv_sse=-len(effects))
 
-    def compare(self, with_, without, effect):  # type: ignore[override]
+    def compare(self, with_, without, effect, screen=False):  # type: ignore[override]
         effects = [effect] if isinstance(effect, str) else list(effect)
         if len(effects) > 1:
             return _Comp("+".join(effects), with_, False)

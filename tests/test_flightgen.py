@@ -507,3 +507,22 @@ def test_a_small_generalisation_matrix_has_no_hang(tmp_path: Path) -> None:
     assert t["timeouts"] == 0, [r["name"] for r in results if r["status"] == "timeout"]
     assert t["errors"] == 0, [r.get("error") for r in results if r["status"] != "ok"]
     assert "| effect |" in (tmp_path / "doc.md").read_text()
+
+
+def test_the_matrix_measures_its_stated_uncertainty_against_the_truth() -> None:
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import generalisation_matrix as gm
+
+    def rec(name: str, found_b: float, sd: float) -> dict[str, object]:
+        return {"name": name, "status": "ok", "truth_effects": {"linear_drag": {"b": 0.4}},
+                "found": [{"effect": "linear_drag", "parameters": {"b": found_b}, "uncertainty": {"b": sd}},
+                          {"effect": "gyro_bias", "parameters": {"bias_x": 0.1}, "uncertainty": {"bias_x": 0.01}}]}
+
+    # pulls 0.5, -1.5, 3.0, 0.2; the gyro bias is not true (a false finding has no pull); NaN sigma left out
+    results = [rec("a", 0.45, 0.1), rec("b", 0.25, 0.1), rec("c", 0.7, 0.1), rec("d", 0.42, 0.1),
+               rec("e", 0.5, math.nan)]
+    pu = gm.pulls(results)
+    assert list(pu) == ["linear_drag.b"]
+    assert [round(p, 9) for p, _n in pu["linear_drag.b"]] == [0.5, -1.5, 3.0, 0.2]
+    row = next(x for x in gm.uncertainty_section(results) if x.startswith("| linear_drag.b"))
+    assert row == "| linear_drag.b | 4 | 50 % | 75 % | 1.00 | 3 (c) |"

@@ -100,6 +100,9 @@ class FlightData:
     #: standard deviation of the recorded values' rounding (gyro: mrad/s integers; flow: counts)
     gyro_resolution_rad_s: float = 0.0
     flow_resolution_rad: float = 0.0
+    #: the step of each stream's own time stamps (s; ``stamp_step_s``), by stream: "flow",
+    #: "attitude", "gyro"; a stream not in it is taken as exact
+    stamp_step_s: dict[str, float] = field(default_factory=dict)
     #: per frame, whether the signal was recorded at the frame (False: bridged over a gap from its
     #: neighbours, lost telemetry or a slower logging rate); None (the default) = recorded
     #: everywhere, which ``__post_init__`` turns into ones: an array once constructed
@@ -160,7 +163,7 @@ class FlightData:
             kw[name] = None if v is None else v[idx]
         return FlightData(self.path, self.profile, self.profile_reason, self.frame_s, self.command_source,
                           notes=list(self.notes), gyro_resolution_rad_s=self.gyro_resolution_rad_s,
-                          flow_resolution_rad=self.flow_resolution_rad, **kw)
+                          flow_resolution_rad=self.flow_resolution_rad, stamp_step_s=dict(self.stamp_step_s), **kw)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -439,8 +442,25 @@ def _concat(parts: list[FlightData]) -> FlightData:
         notes.append("a session's log times overlap the previous one's: it is placed after it (report times "
                      "past the first session are shifted)")
     p0 = parts[0]
+    steps = {k: max(p.stamp_step_s.get(k, 0.0) for p in parts) for p in parts for k in p.stamp_step_s}
     return FlightData(p0.path, p0.profile, p0.profile_reason, p0.frame_s, p0.command_source, notes=notes,
-                      gyro_resolution_rad_s=p0.gyro_resolution_rad_s, flow_resolution_rad=p0.flow_resolution_rad, **kw)
+                      gyro_resolution_rad_s=p0.gyro_resolution_rad_s, flow_resolution_rad=p0.flow_resolution_rad,
+                      stamp_step_s=steps, **kw)
+
+
+def stamp_step_s(t: np.ndarray) -> float:
+    """The resolution of a stream's own time stamps, s: 1 ms when every stamp is a whole
+    millisecond (a ``time_boot_ms``, or a microsecond field that carries milliseconds, as
+    ArduPilot's OPTICAL_FLOW does), else 1 us; 0 for no stamps. Two streams stamped to 1 ms have a
+    relative timing known to +-1 ms at worst (each stamp rounded or truncated by its own phase
+    against the clock's ticks): what a delay or lag between them can be known to
+    (``groups.timing_sigma_s``)."""
+    t = np.asarray(t, float)
+    t = t[np.isfinite(t)]
+    if len(t) == 0:
+        return 0.0
+    ms = t * 1e3
+    return 1e-3 if bool(np.all(np.abs(ms - np.round(ms)) < 1e-4)) else 1e-6
 
 
 def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reason: str, sysid: int) -> FlightData:
@@ -615,5 +635,6 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
         gyro_resolution_rad_s=(1e-3 if scale == 1e-3 else 0.0) / np.sqrt(12.0),
         flow_resolution_rad=(cfg.flow_sensor.q_rad_per_count if prof is Profile.PAPER else 0.0) / np.sqrt(12.0),
         flow_rec=flow_rec, att_rec=att_rec, gyro_rec=gyro_rec, cmd_rec=cmd_rec,
+        stamp_step_s={"flow": stamp_step_s(tr), "attitude": stamp_step_s(att_t), "gyro": stamp_step_s(gt)},
         flow_body_x_rad_s=body_x, flow_body_y_rad_s=body_y, gyro_angle_x_rad=gang_x, gyro_angle_y_rad=gang_y,
         gyro_fine_x_rad_s=gfine_x, gyro_fine_y_rad_s=gfine_y)

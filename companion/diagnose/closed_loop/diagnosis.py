@@ -333,8 +333,9 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
                                            "cv_t": float(comp.cv_t)})
                 if f.alternatives:
                     others = " or ".join(f"{a['effect']} ({_fmt(a['parameters'])})" for a in f.alternatives)
-                    f.explanation += (f" This flight cannot tell it from {others}: each predicts held-out data as "
-                                      f"well; a flight with more manoeuvring (and height changes) would.")
+                    f.explanation += (f" This flight cannot tell it from {others}: fitted in its place, each "
+                                      f"explains what it explains; a flight with more manoeuvring (and height "
+                                      f"changes) would tell them apart.")
             report.findings.append(f)
         _unexplained(name, res, data, ap, gp, fp, fstate, settings, report)
         report.notes.extend(res.selector.notes)

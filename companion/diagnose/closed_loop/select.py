@@ -13,9 +13,12 @@ model) and candidate effects, each freeing some of the parameters (``Candidate``
 3. Forward selection on the linearisation at the largest model's fit (every candidate subset and
    fold is a small linear least-squares problem from per-fold sufficient statistics): at each step
    the candidate that lowers the held-out error most is added if it *earns its parameters*:
-   - held-out chi-square lower in the paired per-fold comparison (t >= ``cv_t_min``),
-   - its parameters further than ``z_min`` sigma from the nominal (Wald test, jackknife covariance
-     over the folds, which holds under correlated residuals),
+   - held-out chi-square lower in the paired per-fold comparison (t >= ``cv_t_screen``; the exact
+     refit asks ``cv_t_min`` of its held-out z),
+   - its parameters further than ``z_screen`` sigma from the nominal (Wald test, jackknife
+     covariance over the folds, which holds under correlated residuals, plus what the recording's
+     time stamps leave unknown of a delay or lag, ``Group.timing``; the exact refit asks
+     ``z_min``: the screen only proposes, the exact refit confirms),
    - the information criterion (BIC) lower with it, and
    - the held-out RMS of its primary channel lower by at least ``min_improvement_pct``.
    A selected effect is dropped again when, refitted with the others, it no longer passes.
@@ -76,6 +79,10 @@ class Settings:
     #: time clusters of the cluster-robust covariance (longer than the residuals' correlation)
     cluster_s: float = 10.0
     z_min: float = 3.0
+    #: the linearised screen's Wald z (lower, as ``cv_t_screen`` is: the linearisation at the
+    #: nominal or the largest model understates an effect it is far from, a delay of more than
+    #: a frame; every effect the screen chooses must pass ``z_min`` in the exact refit)
+    z_screen: float = 2.0
     #: exact fits: the held-out gain over the time blocks at least this many of its noise-only
     #: standard deviations (``Selector.heldout_z``)
     cv_t_min: float = 2.0
@@ -145,6 +152,12 @@ class Group:
     #: channel where it acts (inside and around its window) for the held-out improvement
     null_pvalue: Callable[[np.ndarray, np.ndarray], float] | None = None
     active_rows: Callable[[], list[np.ndarray] | None] | None = None
+    #: (parameter, sigma_s): a parameter that is a time between two recorded streams (a delay, a
+    #: lag) whose time stamps leave their relative timing uncertain by sigma_s (1 ms stamps:
+    #: ``groups.timing_sigma_s``). No amount of data pins it closer: the covariance adds sigma_s^2
+    #: to it, or, when it is not fitted, what that shift of it moves the fitted ones by
+    #: (``Selector._cov``)
+    timing: tuple[str, float] | None = None
 
     def index(self, names: Sequence[str]) -> list[int]:
         return [self.params.index(n) for n in names]
@@ -528,12 +541,33 @@ class Selector:
         scale = np.sqrt(var / np.where(dc > 0, dc, 1.0))
         sub = cr * np.outer(scale, scale)
         sub[np.diag_indices(len(free))] = var
+        sub += self._timing_cov(free, Hi)
         cov[np.ix_(free, free)] = sub
         return cov
 
-    def compare(self, with_: ModelScore, without: ModelScore, effect: str | Sequence[str]) -> Comparison:
+    def _timing_cov(self, free: list[int], Hi: np.ndarray) -> np.ndarray:
+        """The systematic share of the free parameters' covariance from the recording's time stamps
+        (``Group.timing``): a shift s of the streams' relative timing is a shift s of the timing
+        parameter; fitted, it moves by s; not fitted, the fitted ones move by -H_ff^-1 H_ft s
+        (the Gauss-Newton normal equations at the linearisation)."""
+        out = np.zeros((len(free), len(free)))
+        if self.g.timing is None or not self.g.timing[1] > 0.0:
+            return out
+        name, sigma_s = self.g.timing
+        t = self.g.params.index(name)
+        if t in free:
+            k = free.index(t)
+            out[k, k] = sigma_s ** 2
+            return out
+        h_ft = self.Gb.sum(axis=0)[free, t]
+        sens = -Hi @ h_ft
+        return sigma_s ** 2 * np.outer(sens, sens)
+
+    def compare(self, with_: ModelScore, without: ModelScore, effect: str | Sequence[str],
+                screen: bool = False) -> Comparison:
         """The evidence for ``effect`` (or several effects together): ``with_`` is ``without``
-        plus the effect(s).
+        plus the effect(s). ``screen``: the selection's linearised screen, which asks less of the
+        Wald z (``z_screen``) when the scores are not exact.
 
         A searched (localised) effect, e.g. a wind over a window, is judged where it acts: by the
         tail probability of its search statistic under a null calibrated on the recording
@@ -586,6 +620,7 @@ class Selector:
         mean = float(np.mean(diff))
         cv_t = mean / (sd / math.sqrt(len(diff))) if sd > 0 else (math.inf if mean > 0 else 0.0)
         t_need = self.s.cv_t_min if exact else self.s.cv_t_screen
+        z_need = self.s.z_screen if screen and not exact else self.s.z_min
         if exact and not localised:
             # the held-out gain against the noise's own variance (``heldout_z``), over the blocks
             cv_t, n_blocks = z_ho, n_ho
@@ -623,8 +658,8 @@ class Selector:
         elif not cv_t >= t_need:
             over = "time blocks where it acts" if exact else "folds"
             reasons.append(f"held-out improvement not consistent over {over} (t = {cv_t:.1f} < {t_need:g})")
-        if not z >= self.s.z_min:
-            reasons.append(f"parameters within {self.s.z_min:g} sigma of the nominal model (z = {z:.1f})")
+        if not z >= z_need:
+            reasons.append(f"parameters within {z_need:g} sigma of the nominal model (z = {z:.1f})")
         if not comp.dbic < 0:
             reasons.append(f"the information criterion does not prefer it (dBIC = {comp.dbic:+.1f})")
         for cand in cands:
@@ -725,13 +760,18 @@ class Selector:
 
     def rivals(self, chosen: Sequence[str], final: ModelScore, effect: str,
                alternatives: Sequence[str]) -> list[tuple[str, ModelScore, float]]:
-        """The effects among ``alternatives`` that explain this flight as well as ``effect`` does:
-        the chosen model with ``effect`` swapped for the alternative (refitted exactly) predicts
-        held-out data no worse than ``final`` by a paired t over the time blocks below
-        ``cv_t_min``, and better than the model without either. Each as (effect, its score, t),
-        t > 0 when ``effect`` predicts better. A flight that does not separate two effects (a flow
-        scale and a rotation gain when the translation is too weak to show) must say so, not name
-        one of them as if it knew."""
+        """The effects among ``alternatives`` that explain this flight as well as ``effect`` does.
+
+        An alternative is one whose swap (the chosen model with ``effect`` replaced by it, refitted
+        exactly) predicts held-out data better than the model without either, and that the flight
+        does not tell from ``effect``: either the swap predicts held-out data no worse than
+        ``final`` (``heldout_z`` below ``cv_t_min``), or, with both fitted, ``effect`` adds no
+        evidence of its own over the alternative by the test that names an effect at all (its Wald
+        z below ``z_min`` or its held-out gain below ``cv_t_min``: the nested comparison, which
+        the paired swap can pass by chance where the two share most of what they explain). Each as
+        (effect, its score, t), t > 0 when ``effect`` predicts better than the swap. A flight that
+        does not separate two effects (a flow scale and a rotation gain when the translation is
+        too weak to show) must say so, not name one of them as if it knew."""
         names = {c.effect for c in self.g.candidates}
         rest = [x for x in chosen if x != effect]
         out: list[tuple[str, ModelScore, float]] = []
@@ -746,9 +786,17 @@ class Selector:
             t, n = self.heldout_z(final, alt)
             if n < 2:
                 continue
-            if t < self.s.cv_t_min:
+            if t < self.s.cv_t_min or not self._separates(rest, effect, a, final, alt):
                 out.append((a, alt, t))
         return out
+
+    def _separates(self, rest: list[str], effect: str, alt_effect: str, final: ModelScore,
+                   alt: ModelScore) -> bool:
+        """Whether ``effect`` shows on its own with ``alt_effect`` fitted too: the model with
+        both against the alternative's (``alt``), by ``compare``'s Wald z and held-out gain."""
+        both = self.score_exact([*rest, effect, alt_effect], final.p)
+        comp = self.compare(both, alt, effect)
+        return comp.z >= self.s.z_min and comp.cv_t >= self.s.cv_t_min
 
     def _null_p(self, p_with: np.ndarray, p_without: np.ndarray) -> float:
         assert self.g.null_pvalue is not None
@@ -813,7 +861,7 @@ class Selector:
             for e in rest:
                 if frozenset([*chosen, e]) in visited:
                     continue
-                comp = self.compare(self.score_linear([*chosen, e], self._judged(e)), base, e)
+                comp = self.compare(self.score_linear([*chosen, e], self._judged(e)), base, e, screen=True)
                 if comp.significant and (best is None or comp.with_.cv_sse < best.with_.cv_sse):
                     best = comp
             best_pair: Comparison | None = None
@@ -822,11 +870,12 @@ class Selector:
                     if frozenset([*chosen, e1, e2]) in visited:
                         continue
                     with_ = self.score_linear([*chosen, e1, e2], self._judged(e1, e2))
-                    comp = self.compare(with_, base, [e1, e2])
+                    comp = self.compare(with_, base, [e1, e2], screen=True)
                     if not comp.significant:
                         continue
                     if best is not None:  # the pair must earn its extra parameters over the best single
-                        vs = self.compare(with_, best.with_, [x for x in (e1, e2) if x not in best.with_.effects])
+                        vs = self.compare(with_, best.with_, [x for x in (e1, e2) if x not in best.with_.effects],
+                                          screen=True)
                         if not ((vs.cv_t >= self.s.cv_t_screen or vs.null_p <= self.s.null_p_max) and vs.dbic < 0):
                             continue
                     if best_pair is None or comp.with_.cv_sse < best_pair.with_.cv_sse:
@@ -840,7 +889,8 @@ class Selector:
                 weak = [e for e in chosen
                         if frozenset(x for x in chosen if x != e) not in visited
                         and not self.compare(self.score_linear(chosen, self._judged(e)),
-                                             self.score_linear([x for x in chosen if x != e]), e).significant]
+                                             self.score_linear([x for x in chosen if x != e]), e,
+                                             screen=True).significant]
                 if not weak:
                     break
                 chosen.remove(weak[0])
