@@ -127,3 +127,15 @@ def test_an_unfitted_timing_parameter_moves_the_fitted_ones() -> None:
     a_shift = float(x1 @ (y - sigma * x2)) / float(x1 @ x1)
     a0 = float(x1 @ y) / float(x1 @ x1)
     assert (a_shift - a0) / sigma == pytest.approx(sens, rel=1e-9)
+
+
+def test_look_alikes_are_mutual() -> None:
+    """If a flight cannot tell A from B it cannot tell B from A: ``ALIKE`` is symmetric, and
+    every name in it is an effect of CONVENTIONS.md's table."""
+    from companion.diagnose.closed_loop.diagnosis import ALIKE
+    from simvehicle.engines.flightgen import EFFECT_NAMES
+
+    for a, others in ALIKE.items():
+        assert a in EFFECT_NAMES
+        for b in others:
+            assert b in EFFECT_NAMES and a in ALIKE.get(b, ()), (a, b)

@@ -44,14 +44,16 @@ from companion.recordings.load import Recording
 MISFIT_TIMES_NOISE = 3.0
 #: effects that can stand in for one another where a flight does not separate them (the flow's
 #: scale and its rotation gain when the translation is weak; a range offset and a scale at one
-#: height; a lever arm and a rotation gain at one height; linear and form drag at one speed)
+#: height; a lever arm and a rotation gain at one height; linear and form drag at one speed; a
+#: drag and a wind over a stretch flown at one speed, where the drag is a constant force)
 ALIKE = {
     "flow_scale": ("flow_rotation_gain", "range_offset", "flow_lever_arm"),
     "flow_rotation_gain": ("flow_scale", "flow_lever_arm"),
     "flow_lever_arm": ("flow_rotation_gain", "flow_scale"),
     "range_offset": ("flow_scale",),
-    "linear_drag": ("quadratic_drag",),
-    "quadratic_drag": ("linear_drag",),
+    "linear_drag": ("quadratic_drag", "wind_force"),
+    "quadratic_drag": ("linear_drag", "wind_force"),
+    "wind_force": ("linear_drag", "quadratic_drag"),
     # below the loop's bandwidth a second-order loop lags its command by 2 zeta / Omega_p: a
     # command delay d and a loop slower by that much answer slow commands alike
     "attitude_dynamics": ("attitude_delay",),
@@ -334,8 +336,8 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
                 if f.alternatives:
                     others = " or ".join(f"{a['effect']} ({_fmt(a['parameters'])})" for a in f.alternatives)
                     f.explanation += (f" This flight cannot tell it from {others}: fitted in its place, each "
-                                      f"explains what it explains; a flight with more manoeuvring (and height "
-                                      f"changes) would tell them apart.")
+                                      f"explains what it explains; a flight with more manoeuvring (speed and "
+                                      f"height changes) would tell them apart.")
             report.findings.append(f)
         _unexplained(name, res, data, ap, gp, fp, fstate, settings, report)
         report.notes.extend(res.selector.notes)
@@ -367,10 +369,7 @@ def _alternatives(effect: str, res: GroupResult) -> list[dict[str, Any]]:
     ``Selector.rivals``), as ``Finding.alternatives``."""
     out = []
     for a, score, t in res.selector.rivals(res.chosen, res.final, effect, ALIKE[effect]):
-        cand = next(c for c in res.group.candidates if c.effect == a)
-        idx = res.group.index(cand.params)
-        out.append({"effect": a, "parameters": {n: float(score.p[i]) for n, i in zip(cand.params, idx, strict=True)},
-                    "cv_t": float(t)})
+        out.append({"effect": a, "parameters": _params(a, res.group, score, {})[0], "cv_t": float(t)})
     return out
 
 

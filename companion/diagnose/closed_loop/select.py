@@ -788,6 +788,8 @@ class Selector:
                 continue
             if t < self.s.cv_t_min or not self._separates(rest, effect, a, final, alt):
                 out.append((a, alt, t))
+        if any(i in final.free for i in self.widx):  # the refits searched the window again: back to final's
+            self._search(final.p, None)
         return out
 
     def _separates(self, rest: list[str], effect: str, alt_effect: str, final: ModelScore,
