@@ -525,7 +525,8 @@ class Selector:
             return cov
         K = self.K
         d = p - self.p_lin
-        H = self.Gb.sum(axis=0)[np.ix_(free, free)]
+        H_all = self.Gb.sum(axis=0)
+        H = H_all[np.ix_(free, free)]
         sb = self.gvb[:, free] + self.Gb[:, free, :] @ d  # (B, k) block scores at p
         S = sb.T @ sb
         if len(sb) > 1:
@@ -541,15 +542,15 @@ class Selector:
         scale = np.sqrt(var / np.where(dc > 0, dc, 1.0))
         sub = cr * np.outer(scale, scale)
         sub[np.diag_indices(len(free))] = var
-        sub += self._timing_cov(free, Hi)
+        sub += self._timing_cov(free, Hi, H_all)
         cov[np.ix_(free, free)] = sub
         return cov
 
-    def _timing_cov(self, free: list[int], Hi: np.ndarray) -> np.ndarray:
+    def _timing_cov(self, free: list[int], Hi: np.ndarray, H_all: np.ndarray) -> np.ndarray:
         """The systematic share of the free parameters' covariance from the recording's time stamps
         (``Group.timing``): a shift s of the streams' relative timing is a shift s of the timing
         parameter; fitted, it moves by s; not fitted, the fitted ones move by -H_ff^-1 H_ft s
-        (the Gauss-Newton normal equations at the linearisation)."""
+        (the Gauss-Newton normal equations at the linearisation, ``H_all`` summed over the blocks)."""
         out = np.zeros((len(free), len(free)))
         if self.g.timing is None or not self.g.timing[1] > 0.0:
             return out
@@ -559,7 +560,7 @@ class Selector:
             k = free.index(t)
             out[k, k] = sigma_s ** 2
             return out
-        h_ft = self.Gb.sum(axis=0)[free, t]
+        h_ft = H_all[free, t]
         sens = -Hi @ h_ft
         return sigma_s ** 2 * np.outer(sens, sens)
 
