@@ -6,10 +6,12 @@ Toy groups with residuals linear in their parameters, so every expected number i
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
+from test_diagnose import _flight_data
 
 from companion.diagnose.closed_loop.channels import FlightData, stamp_step_s
 from companion.diagnose.closed_loop.groups import timing_sigma_s
@@ -86,12 +88,7 @@ def test_the_stamp_step_is_a_millisecond_only_when_every_stamp_is_one() -> None:
 
 
 def _data_with_steps(steps: dict[str, float]) -> FlightData:
-    n = 4
-    z = np.zeros(n)
-    return FlightData("x", "paper", "test", 0.02, "test", t_s=np.arange(n) * 0.02, dt_s=z + 0.02,
-                      seg=np.zeros(n, int), dphi_x_rad=z, dphi_y_rad=z, gyro_x_rad_s=z, gyro_y_rad_s=z, range_m=z + 1,
-                      roll_rad=z, pitch_rad=z, yaw_rad=z, roll_cmd_rad=z, pitch_cmd_rad=z, vx_set_m_s=z, vy_set_m_s=z,
-                      truth_vx_m_s=z, truth_vy_m_s=z, stamp_step_s=steps)
+    return dataclasses.replace(_flight_data(np.arange(4) * 0.02), stamp_step_s=steps)
 
 
 def test_timing_sigma_is_two_uniform_roundings() -> None:
