@@ -411,6 +411,31 @@ def _oracle_cell(r: dict[str, Any]) -> str:
     return "; ".join(one(e) for e in r["truth_effects"])
 
 
+def right_if_excused(results: list[dict[str, Any]], z_below: float) -> tuple[int, int]:
+    """(recordings that would be right if a miss of an effect with an oracle z under ``z_below`` did
+    not count, recordings with a score): what a finder limited only by the recordings' evidence
+    is measured against. A miss without an oracle z still counts; a false finding always does."""
+    ok = [r for r in results if r.get("status") == "ok"]
+    right = 0
+    for r in ok:
+        sc = r["score"]
+        counted = []
+        for e in sc["misses"]:
+            ev = (r.get("oracle") or {}).get(e)
+            if not (ev is not None and ev.get("z") is not None and float(ev["z"]) < z_below):
+                counted.append(e)
+        right += not counted and not sc["false"]
+    return right, len(ok)
+
+
+def right_if_excused_line(results: list[dict[str, Any]]) -> str:
+    """A sentence: how many recordings are right with the misses the recording cannot show excused."""
+    r3, n = right_if_excused(results, Z_SEEN_NOT)
+    r5, _ = right_if_excused(results, Z_SEEN)
+    return (f"Were a miss of an effect its recording cannot show (oracle z < {Z_SEEN_NOT:g}) not counted, {r3} / {n} "
+            f"recordings would be right ({r5} / {n} with z < {Z_SEEN:g}); the headline count above does count them.")
+
+
 def _stood_in(r: dict[str, Any], effect: str) -> bool:
     """Whether another candidate stands in for a true effect the oracle sees (z >= 5, rival z < 3)."""
     ev = (r.get("oracle") or {}).get(effect)
@@ -474,7 +499,7 @@ def oracle_section(results: list[dict[str, Any]], oracle_at: str = "") -> list[s
         f"{m[BANDS[2]]} {BANDS[2]}, {m[BANDS[3]]} {BANDS[3]}" + (f", {m['not computed']} not computed" if
                                                                 m["not computed"] else "")
         + f"; of the {m[BANDS[2]] + m[BANDS[3]]} at z >= {Z_SEEN:g}, {rivalled['all effects']} have a rival z under "
-          f"{Z_SEEN_NOT:g}.",
+          f"{Z_SEEN_NOT:g}. " + right_if_excused_line(results),
         "",
         "Hits / true effects, by oracle z:",
         "",

@@ -326,3 +326,22 @@ def test_a_wind_on_before_the_recording_starts_is_reported_from_the_first_frame(
     assert f.parameters["start_s"] <= 0.1 and f.uncertainty["start_s"] >= 1.0
     err = math.hypot(f.parameters["fx"] - wind["fx"], f.parameters["fy"] - wind["fy"])
     assert err <= 0.2 * math.hypot(wind["fx"], wind["fy"])
+
+
+def test_a_flow_scale_or_rotation_gain_beyond_any_sensor_is_not_named() -> None:
+    """A flow scale or rotation gain outside 0.5-2 (a sensor reading under half or over twice its
+    Q; a flow seeing twice the rotation) is a fit shrinking the flow channel's modelled translation,
+    not a sensor: the candidates' physical checks turn it down, and keep every size a real sensor
+    can have (ArduPilot's FLOW_FXSCALER spans 0.2-1.8 x; the matrix draws 0.8-1.25)."""
+    from companion.diagnose.closed_loop import groups
+
+    assert groups.PLAUSIBLE_FLOW_GAIN == (0.5, 2.0)
+    for sx, sy in ((0.8, 1.25), (1.8, 1.0), (0.5, 2.0)):
+        assert groups._plausible_scale({"scale_x": sx, "scale_y": sy}) is None
+    for sx, sy in ((2.37, 1.0), (1.0, 0.45), (2.4, 2.4)):
+        why = groups._plausible_scale({"scale_x": sx, "scale_y": sy})
+        assert why is not None and "beyond any lens or texture error" in why
+    assert groups._plausible_gain({"gain": 1.2}) is None
+    assert groups._plausible_gain({"gain": 0.55}) is None
+    assert groups._plausible_gain({"gain": 2.82}) is not None
+    assert groups._plausible_gain({"gain": 0.3}) is not None

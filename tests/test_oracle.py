@@ -134,7 +134,8 @@ def test_the_matrix_report_counts_hits_and_misses_by_oracle_band() -> None:
 
     def rec(effect: str, outcome: str, reason: str, z: float, z_rival: float, rival: str = "") -> dict:
         return {"status": "ok", "truth_effects": {effect: {}},
-                "score": {"effects": {effect: {"outcome": outcome, "reason": reason}}},
+                "score": {"effects": {effect: {"outcome": outcome, "reason": reason}},
+                          "misses": [effect] if outcome == "miss" else [], "false": []},
                 "oracle": {effect: {"z": z, "z_rival": z_rival, "rival": rival, "note": ""}}}
 
     results = [rec("range_offset", "miss", "not reported", 0.4, 0.4),
@@ -153,3 +154,11 @@ def test_the_matrix_report_counts_hits_and_misses_by_oracle_band() -> None:
                                             "at z >= 5 with a rival z < 3: 1")
     assert gm._oracle_cell(results[1]) == "range_offset 12.0 (1.0 vs flow_scale)"
     assert gm.oracle_section([{"status": "ok", "truth_effects": {}}]) == []  # no oracle, no section
+    # right with the misses a recording cannot show excused: the z 0.4 miss and the hit (and the
+    # z 4 miss when z < 5 is excused); a false finding is never excused, a timeout is not scored
+    assert gm.right_if_excused(results, 3.0) == (2, 4)
+    assert gm.right_if_excused(results, 5.0) == (3, 4)
+    false_too = rec("range_offset", "miss", "not reported", 0.4, 0.4)
+    false_too["score"]["false"] = ["flow_scale"]
+    assert gm.right_if_excused([false_too], 3.0) == (0, 1)
+    assert "2 / 4 recordings would be right (3 / 4 with z < 5)" in text

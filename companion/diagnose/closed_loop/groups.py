@@ -277,6 +277,33 @@ def _positive_drag(p: dict[str, float]) -> str | None:
     return "a negative drag (the air pushing the vehicle along) is not physical" if p["b"] <= 0 else None
 
 
+#: the widest flow scale and rotation gain a flow sensor can physically have: a lens, a surface
+#: texture or a mis-set FLOW_FXSCALER (ArduPilot: 0.2-1.8 x) moves the scale by tens of per cent, a
+#: mount or the sampling of rates the rotation gain likewise (ArduCopter SITL: 1.1-1.2). A fit
+#: beyond it is a flow channel whose modelled translation the fit is shrinking (a scale far above
+#: 1 together with a rotation gain that keeps the rotation: the translation the recorded tilt
+#: predicts does not match the flow's, e.g. under gusts), not a sensor
+PLAUSIBLE_FLOW_GAIN = (0.5, 2.0)
+
+
+def _plausible_scale(p: dict[str, float]) -> str | None:
+    lo, hi = PLAUSIBLE_FLOW_GAIN
+    bad = [f"{k} = {p[k]:.3g}" for k in ("scale_x", "scale_y") if not lo <= p[k] <= hi]
+    if bad:
+        return (f"a flow scale of {', '.join(bad)} (a sensor reading under half or over twice the nominal Q) is "
+                f"beyond any lens or texture error: something else is at work, or q_rad_per_count is not this "
+                f"sensor's")
+    return None
+
+
+def _plausible_gain(p: dict[str, float]) -> str | None:
+    lo, hi = PLAUSIBLE_FLOW_GAIN
+    if not lo <= p["gain"] <= hi:
+        return (f"a flow that sees {p['gain']:.3g} times the rotation is beyond any mount or sampling effect: "
+                f"something else is at work")
+    return None
+
+
 #: crossover of the rotation the flow is compared with: the attitude estimate below, the integrated
 #: gyro above (Hz)
 ROTATION_CROSSOVER_HZ = 1.0
@@ -553,10 +580,10 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
         floors=(max(data.flow_resolution_rad, 1e-5),) * 2 + (1e-3, 1e-3), residuals=residuals,
         row_times=[tf, tf, tw, tw],
         candidates=[Candidate(e, ps, physical=phys, matters=threshold(e)) for e, ps, phys in (
-            ("flow_scale", ("scale_x", "scale_y"), None),
+            ("flow_scale", ("scale_x", "scale_y"), _plausible_scale),
             ("flow_yaw_misalignment", ("yaw",), None),
             ("flow_delay", ("delay",), _causal_flow_delay),
-            ("flow_rotation_gain", ("gain",), None),
+            ("flow_rotation_gain", ("gain",), _plausible_gain),
             ("range_offset", ("offset",), None),
             ("linear_drag", ("b",), _positive_drag),
             ("quadratic_drag", ("c",), _positive_form_drag),
