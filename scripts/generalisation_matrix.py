@@ -419,11 +419,7 @@ def right_if_excused(results: list[dict[str, Any]], z_below: float) -> tuple[int
     right = 0
     for r in ok:
         sc = r["score"]
-        counted = []
-        for e in sc["misses"]:
-            ev = (r.get("oracle") or {}).get(e)
-            if not (ev is not None and ev.get("z") is not None and float(ev["z"]) < z_below):
-                counted.append(e)
+        counted = [e for e in sc["misses"] if not ((z := _oracle_z(r, e)) is not None and z < z_below)]
         right += not counted and not sc["false"]
     return right, len(ok)
 
@@ -444,9 +440,15 @@ def _stood_in(r: dict[str, Any], effect: str) -> bool:
     return float(ev["z"]) >= Z_SEEN and float(ev["z_rival"]) < Z_SEEN_NOT
 
 
-def _oracle_band(r: dict[str, Any], effect: str) -> str:
+def _oracle_z(r: dict[str, Any], effect: str) -> float | None:
+    """The oracle z of a true effect of recording ``r`` (None when not computed)."""
     ev = (r.get("oracle") or {}).get(effect)
-    return band(float(ev["z"])) if ev is not None and ev.get("z") is not None else "not computed"
+    return float(ev["z"]) if ev is not None and ev.get("z") is not None else None
+
+
+def _oracle_band(r: dict[str, Any], effect: str) -> str:
+    z = _oracle_z(r, effect)
+    return band(z) if z is not None else "not computed"
 
 
 def oracle_section(results: list[dict[str, Any]], oracle_at: str = "") -> list[str]:
