@@ -107,13 +107,20 @@ class AttitudeProblem:
             cuts.append(b)
             cuts = sorted(set(c for c in cuts if a <= c <= b))
             self.segments += [(c0, c1) for c0, c1 in zip(cuts[:-1], cuts[1:], strict=True) if c1 - c0 >= 2]
-        # initial rate of each segment from the recorded attitude: the three-point one-sided
-        # difference (a two-point one gives the rate half a frame late, and a simulation restarted
-        # often, after lost commands, would read that as a loop that answers early)
+        # initial rate of each segment: the gyro's, or else from the recorded attitude, the
+        # three-point one-sided difference (a two-point one gives the rate half a frame late, and a
+        # simulation restarted often, after lost commands, would read that as a loop that answers
+        # early)
         self.rate0 = []
         t = data.t_s
+        gyro = np.stack([data.gyro_x_rad_s, data.gyro_y_rad_s])  # roll, pitch rate (small angles)
         for a, b in self.segments:
-            if b - a >= 3:
+            if data.gyro_rec[a] and np.all(np.isfinite(gyro[:, a])):
+                # the gyro measures the rate itself: its noise is a small fraction of a rate
+                # differenced from three noisy attitudes (0.1 deg of noise over two frames at 50 Hz
+                # is 0.1 rad/s), whose answer the fit of the dynamics would otherwise shape
+                self.rate0.append(gyro[:, a].copy())
+            elif b - a >= 3:
                 h1, h2 = t[a + 1] - t[a], t[a + 2] - t[a]
                 y0, y1, y2 = self.y[:, a], self.y[:, a + 1], self.y[:, a + 2]
                 # derivative at t_a of the parabola through the three samples
@@ -123,14 +130,17 @@ class AttitudeProblem:
                 self.rate0.append((self.y[:, k] - self.y[:, a]) / max(t[k] - t[a], 1e-6))
 
     def delayed_command(self, delay_s: float) -> np.ndarray:
-        """The command shifted by ``delay_s`` (fractional frames: frame-averaged), per segment."""
+        """The command shifted by ``delay_s`` (fractional frames: frame-averaged), per segment of
+        the recording: a simulation restarted after a lost command still takes the commands sent
+        before the restart (a loop that answers m frames late is, just after the restart, still
+        answering them; the segment's first command in their place would read as a shorter delay)."""
         if delay_s == 0.0:
             return self.u
         shift = delay_s / self.T
         m = math.floor(shift)
         f = shift - m
         out = np.empty_like(self.u)
-        for a, b in self.segments:
+        for a, b in self.data.segments():
             seg = self.u[:, a:b]
             idx = np.arange(b - a)
             i0 = np.clip(idx - m, 0, b - a - 1)
@@ -159,9 +169,10 @@ class AttitudeProblem:
 
     def _free_rate(self, e: np.ndarray, omega_p: float, zeta: float, fit_mask: np.ndarray | None) -> np.ndarray:
         """Each segment's starting rate as a nuisance: its free response (the loop's answer to a
-        unit initial rate, no command) is fitted out of the segment's residual. A restart after
-        lost commands takes its rate from three recorded attitudes, which a command that jumps
-        every frame makes inexact; a wrong start would otherwise read as a loop answering early."""
+        unit initial rate, no command) is fitted out of the segment's residual. The start's rate
+        is the gyro's (or, without one, three recorded attitudes differenced), never exact; a
+        wrong start would read as a loop answering early or late, and a fit of the dynamics would
+        shape the loop's decay to it (a single segment included)."""
         Ad, _Bd, b, a = discretise(omega_p, zeta, self.T)
         L = max(s1 - s0 for s0, s1 in self.segments)
         Ainv = np.linalg.inv(Ad)
@@ -186,7 +197,7 @@ class AttitudeProblem:
         """Recorded minus simulated attitude (2, n), rad, with each axis' constant offset removed
         (the offset estimated on ``fit_mask`` frames, all frames by default)."""
         e = self.y - self.simulate(omega_p, zeta, delay_s)
-        if len(self.segments) > 1 and omega_p > 0 and zeta > 0:
+        if omega_p > 0 and zeta > 0:
             e = self._free_rate(e, omega_p, zeta, fit_mask)
         sub = e if fit_mask is None else e[:, fit_mask]
         ok = np.isfinite(sub)

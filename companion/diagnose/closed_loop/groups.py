@@ -34,10 +34,15 @@ AROUND_WINDOW_S = 5.0
 
 
 #: frames after a gap of lost commands whose attitude residual is not used: the simulation restarts
-#: there from the recorded attitude, with a rate from two frames (s)
+#: there from the recorded attitude and the gyro's rate (s)
 AFTER_COMMAND_GAP_S = 0.1
 #: frames after a single lost (interpolated) command whose attitude residual is not used
 COMMAND_SETTLE_FRAMES = 3
+#: the longest attitude-loop delay fitted (s)
+ATTITUDE_DELAY_MAX_S = 0.25
+#: frames of a long flight the whole-frame delay that places the rows after lost commands is
+#: taken from (``_loop_delay_frames``)
+DELAY_PREFIT_FRAMES = 3000
 
 
 def _runs(missing: np.ndarray, min_len: int) -> list[tuple[int, int]]:
@@ -50,19 +55,54 @@ def _runs(missing: np.ndarray, min_len: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(starts, stops, strict=True) if b - a >= min_len]
 
 
-def attitude_rows(data: FlightData) -> np.ndarray:
+def attitude_rows(data: FlightData, delay_frames: int = 0) -> np.ndarray:
     """Frames whose attitude residual is used: the attitude was recorded there, and the
-    simulation is not just coming out of a gap of lost commands (``AFTER_COMMAND_GAP_S``)."""
+    simulation is not just coming out of a gap of lost commands (``AFTER_COMMAND_GAP_S``). A loop
+    that answers ``delay_frames`` late answers a lost command that much later too: the frames left
+    out after it are shifted on by as many."""
     rows = data.att_rec.copy()
     t = data.t_s
     # a single lost command is bridged by interpolation; the attitude's response to its error
     # has faded after a few frames
     lost = np.flatnonzero(~data.cmd_rec)
-    for k in range(COMMAND_SETTLE_FRAMES):
+    for k in range(COMMAND_SETTLE_FRAMES + max(delay_frames, 0)):
         rows[np.minimum(lost + k, data.n - 1)] = False
     for a, b in _runs(~data.cmd_rec, 2):
-        rows &= ~((t >= t[a]) & (t <= t[b - 1] + AFTER_COMMAND_GAP_S))
+        rows &= ~((t >= t[a]) & (t <= t[b - 1] + AFTER_COMMAND_GAP_S + max(delay_frames, 0) * data.frame_s))
     return rows
+
+
+def _loop_delay_frames(ap: AttitudeProblem, data: FlightData, omega_p: float, zeta: float) -> int:
+    """Whole frames by which the attitude loop answers late (at least), for ``attitude_rows``: the
+    whole-frame delay that best explains the attitude at the nominal dynamics, on the rows that
+    delay leaves (a fixed point, a few rounds), plus one frame for a delay between frames. It only
+    places the rows; the delay and the dynamics are fitted as effects later. A slower loop reads as
+    a delay here, and its answer to a lost command does come later."""
+    T = data.frame_s
+    n_max = int(math.ceil(ATTITUDE_DELAY_MAX_S / T))
+    if data.n > DELAY_PREFIT_FRAMES:  # a long flight: blocks spread over it are plenty for whole frames
+        block = DELAY_PREFIT_FRAMES // 12
+        starts = np.linspace(0, data.n - block, 12).round().astype(int)
+        mask = np.zeros(data.n, dtype=bool)
+        for a in starts:
+            mask[a:a + block] = True
+        data = data.take(mask)
+        ap = AttitudeProblem(data)
+    m = 0
+    for _round in range(4):
+        rows = attitude_rows(data, m)
+        if not np.any(rows):
+            return m
+        costs = []
+        for j in range(n_max + 1):
+            e = ap.residual(omega_p, zeta, j * T, fit_mask=rows)[:, rows]
+            costs.append(float(np.nansum(e * e)))
+        j_best = int(np.argmin(costs))
+        m_new = j_best + 1 if j_best else 0
+        if m_new == m:
+            break
+        m = m_new
+    return m
 
 
 def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProblem]:
@@ -70,6 +110,8 @@ def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProble
     wp, z = cfg.airframe.omega_p_rad_s, cfg.airframe.zeta
     T = data.frame_s
     rows = attitude_rows(data)
+    if np.any(~data.cmd_rec) and np.any(rows):
+        rows = attitude_rows(data, _loop_delay_frames(ap, data, wp, z))
     if not np.any(rows):
         rows = np.ones(data.n, dtype=bool)
     ap.rows = rows
@@ -83,7 +125,8 @@ def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProble
         name="attitude", params=("omega_p", "zeta", "delay"), nominal=np.array([wp, z, 0.0]),
         timing=("delay", timing_sigma_s(data, "flow", "attitude")),
         steps=np.array([0.005 * wp, 0.005, 0.0005]), lower=np.array([0.3, 0.05, -T]),
-        upper=np.array([80.0, 5.0, 0.25]), channels=("attitude_roll", "attitude_pitch"), units=("rad", "rad"),
+        upper=np.array([80.0, 5.0, ATTITUDE_DELAY_MAX_S]), channels=("attitude_roll", "attitude_pitch"),
+        units=("rad", "rad"),
         floors=(1e-4, 1e-4), residuals=residuals, row_times=[tr, tr],
         candidates=[Candidate("attitude_dynamics", ("omega_p", "zeta"),
                               matters=threshold("attitude_dynamics", {"omega_p": wp, "zeta": z})),
