@@ -117,8 +117,10 @@ class AttitudeProblem:
         for a, b in self.segments:
             if data.gyro_rec[a] and np.all(np.isfinite(gyro[:, a])):
                 # the gyro measures the rate itself: its noise is a small fraction of a rate
-                # differenced from three noisy attitudes (0.1 deg of noise over two frames at 50 Hz
-                # is 0.1 rad/s), whose answer the fit of the dynamics would otherwise shape
+                # differenced from three noisy attitudes (0.05 deg of noise over two frames at 50 Hz
+                # is 0.1 rad/s). The fit does not depend on it (``_free_rate`` fits the start's rate
+                # out of the rows); the simulated attitude does: the unexplained terms' regressors
+                # and the loop-form check's split take it whole
                 self.rate0.append(gyro[:, a].copy())
             elif b - a >= 3:
                 h1, h2 = t[a + 1] - t[a], t[a + 2] - t[a]
