@@ -40,6 +40,10 @@ AFTER_COMMAND_GAP_S = 0.1
 COMMAND_SETTLE_FRAMES = 3
 #: the longest attitude-loop delay fitted (s)
 ATTITUDE_DELAY_MAX_S = 0.25
+#: the attitude loop is assessed only with at least this much of usable attitude rows (s of frames):
+#: fewer cannot pin a second-order loop and a delay (a DataFlash log's 10 Hz attitude target leaves
+#: one row in 160 s)
+ATTITUDE_MIN_S = 2.0
 #: frames of a long flight the whole-frame delay that places the rows after lost commands is
 #: taken from (``_loop_delay_frames``)
 DELAY_PREFIT_FRAMES = 3000
@@ -112,6 +116,13 @@ def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProble
     rows = attitude_rows(data)
     if np.any(~data.cmd_rec) and np.any(rows):
         rows = attitude_rows(data, _loop_delay_frames(ap, data, wp, z))
+    n_rows = int(np.count_nonzero(rows))
+    assessed = n_rows * T >= ATTITUDE_MIN_S
+    if not assessed:
+        data.notes.append(f"the attitude loop is not assessed: {n_rows} of {data.n} frames have a recorded attitude "
+                          f"answering known commands (the others are lost, or bridged between commands logged slower "
+                          f"than the frames, and a lost command's answer is not known); attitude_dynamics and "
+                          f"attitude_delay are not tried")
     if not np.any(rows):
         rows = np.ones(data.n, dtype=bool)
     ap.rows = rows
@@ -130,7 +141,7 @@ def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProble
         floors=(1e-4, 1e-4), residuals=residuals, row_times=[tr, tr],
         candidates=[Candidate("attitude_dynamics", ("omega_p", "zeta"),
                               matters=threshold("attitude_dynamics", {"omega_p": wp, "zeta": z})),
-                    Candidate("attitude_delay", ("delay",), matters=threshold("attitude_delay"))])
+                    Candidate("attitude_delay", ("delay",), matters=threshold("attitude_delay"))] if assessed else [])
     return g, ap
 
 
