@@ -320,7 +320,8 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
     for name, res in results.items():
         g = res.group
         for c, ch in enumerate(g.channels):
-            report.baseline_rms[ch] = float(np.sqrt(np.mean(res.r_nominal[c] ** 2)))
+            x = res.r_nominal[c]  # a channel can hold no rows (every flow window of an axis quiet)
+            report.baseline_rms[ch] = float(np.sqrt(np.mean(x ** 2))) if len(x) else math.nan
         for e, comp in res.evidence.items():
             f = _finding(e, comp, res, data, cfg, cond)
             if res.loop_form is not None and e in res.chosen and e in LOOP_EFFECTS:

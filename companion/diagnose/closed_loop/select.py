@@ -215,6 +215,44 @@ class Comparison:
         return 100.0 * (b - a) / b if b > 0 else 0.0
 
 
+#: the sandwich's correlation is used unless it is this much nearer singular than the model's
+#: (smallest eigenvalue of the correlation matrix under this share of the model's): ``_correlation``
+SINGULAR_SHARE = 0.1
+
+
+def _correlation(cr: np.ndarray, Hi: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The free parameters' correlation matrix: the cluster-robust sandwich's ``cr``, or the model's
+    (Gauss-Newton, ``Hi`` = H^-1) where the sandwich is singular beside it; and whether it was.
+
+    Why: the sandwich sums the scores of the time blocks, so it spans no more directions than the
+    blocks that carry a score. A wind over 4 s of a 41 s flight has scores in two blocks: its fx
+    and fy came out correlated at +1.00000 although they act on different axes (the model says 0),
+    and the Wald test along the direction no block spans was infinitely confident (z 29 for
+    fx = -0.12 +- 0.07, fy = 0.10 +- 0.07, each under 2 sigma: a false wind on a clean flight;
+    gen_0164, gen_0293 likewise, at -0.99999). Only where the sandwich's smallest eigenvalue is
+    under ``SINGULAR_SHARE`` of the model's; the caller then floors the variances by the model's
+    too (one block's sandwich is zero)."""
+    def corr(c: np.ndarray) -> np.ndarray:
+        d = np.sqrt(np.clip(np.diag(c), 0.0, None))
+        ok = d > 0
+        out = np.eye(len(c))
+        out[np.ix_(ok, ok)] = c[np.ix_(ok, ok)] / np.outer(d[ok], d[ok])
+        return np.clip(out, -1.0, 1.0)
+
+    c_cr, c_as = corr(cr), corr(Hi)
+    if not (np.all(np.isfinite(c_cr)) and np.all(np.isfinite(c_as))):
+        return c_cr, False
+    if len(cr) == 0:
+        return c_cr, False
+    if not np.all(np.diag(cr) > 0.0):  # the sandwich says nothing along some parameter (one block)
+        return c_as, True
+    if len(cr) == 1:
+        return c_cr, False
+    e_cr, e_as = np.linalg.eigvalsh(c_cr)[0], np.linalg.eigvalsh(c_as)[0]
+    singular = bool(e_cr < SINGULAR_SHARE * e_as)
+    return (c_as if singular else c_cr), singular
+
+
 def block_ids(t_s: np.ndarray, t0_s: float, settings: Settings, block_s: float | None = None) -> np.ndarray:
     """Time block of each time: floor((t - t0) / block_s)."""
     return np.floor((t_s - t0_s) / (block_s or settings.block_s)).astype(int)
@@ -517,7 +555,9 @@ class Selector:
         """Covariance of the free parameters: the cluster-robust sandwich H^-1 S H^-1 over the
         time blocks (scores summed per block, adjacent blocks' cross terms at half weight: a
         Newey-West estimate that holds when residuals are correlated in time, as turbulence makes
-        them), its variances floored by the jackknife over the K delete-one-fold fits."""
+        them), its variances floored by the jackknife over the K delete-one-fold fits. Where the
+        sandwich is singular beside the model's own H^-1 (the residuals are weighted by their noise
+        scale: ``_correlation``), that gives the correlation and floors the variances too."""
         del full_sse
         P = self.P
         cov = np.zeros((P, P))
@@ -539,9 +579,11 @@ class Selector:
         jk = (K - 1) / K * dev.T @ dev
         dc, dj = np.diag(cr), np.diag(jk)
         var = np.maximum(dc, dj)
-        scale = np.sqrt(var / np.where(dc > 0, dc, 1.0))
-        sub = cr * np.outer(scale, scale)
-        sub[np.diag_indices(len(free))] = var
+        corr, singular = _correlation(cr, Hi)
+        if singular:  # a sandwich over the one or two blocks a short effect acts in (one: zero)
+            var = np.maximum(var, np.clip(np.diag(Hi), 0.0, None))
+        sd = np.sqrt(var)
+        sub = corr * np.outer(sd, sd)
         sub += self._timing_cov(free, Hi, H_all)
         cov[np.ix_(free, free)] = sub
         return cov
