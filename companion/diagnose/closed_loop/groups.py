@@ -224,8 +224,8 @@ class FlowGroupState:
     def __init__(self, fp: FlowProblem) -> None:
         self.fp = fp
         self.window: WindWindow | None = None
-        #: rows per flow channel, x and y (the kept windows' frames after the whitening filter's start-up)
-        self.n_flow_rows = (fp.flow.idx.size, fp.flow.idx.size)
+        #: rows per flow channel (the kept windows' frames after the whitening filter's start-up)
+        self.n_flow_rows = fp.flow.idx.size
         #: the filter each flow channel's window rows go through (``ar_whitener``), per axis
         self.whiten: list[Callable[[np.ndarray], np.ndarray]] = [lambda r: r, lambda r: r]
 
@@ -269,9 +269,9 @@ class FlowGroupState:
         q = p.copy()
         q[IDX["fx"]] = q[IDX["fy"]] = 0.0
         W = self.fp.force.idx
-        nx, ny = self.n_flow_rows
+        nf = self.n_flow_rows
         self.window = None
-        cols = [np.zeros((nx, 2)), np.zeros((ny, 2)), np.zeros((len(W), 2)), np.zeros((len(W), 2))]
+        cols = [np.zeros((nf, 2)), np.zeros((nf, 2)), np.zeros((len(W), 2)), np.zeros((len(W), 2))]
         if len(W) == 0:
             return cols
         e = self.fp.force_residual(q)
@@ -302,10 +302,11 @@ class FlowGroupState:
         s, e = self.start_end
         if not (math.isfinite(s) and math.isfinite(e)):
             return None
-        nx, ny = self.n_flow_rows
+        nf = self.n_flow_rows
         f0, f1 = self.fp.force.t_start_s, self.fp.force.t_end_s
         on = (f1 >= s - AROUND_WINDOW_S) & (f0 <= e + AROUND_WINDOW_S)
-        return [np.zeros(nx, dtype=bool), np.zeros(ny, dtype=bool), on, on]
+        none = np.zeros(nf, dtype=bool)
+        return [none, none, on, on]
 
 
 def _positive_lag(p: dict[str, float]) -> str | None:
@@ -511,11 +512,11 @@ QUIET_ROTATION_COUNTS = 1.0
 
 
 def quiet_windows(fp: FlowProblem, count_rad: float) -> np.ndarray:
-    """(2, n_windows), per flow channel: True where a flow window's rotation is under
-    ``QUIET_ROTATION_COUNTS`` counts of ``count_rad`` on both axes (none when the flow is not
-    quantized: ArduPilot's flow rates). The same for both channels: a window whose other axis turns
-    keeps its quiet axis, where a turned sensor (``flow_yaw_misalignment``) shows that rotation
-    (left out per axis, the matrix lost four yaw misalignments).
+    """(n_windows,) True where a flow window's rotation is under ``QUIET_ROTATION_COUNTS`` counts of
+    ``count_rad`` on both axes (none when the flow is not quantized: ArduPilot's flow rates). A
+    window whose other axis turns keeps its quiet axis too, where a turned sensor
+    (``flow_yaw_misalignment``) shows that rotation (left out per axis, the matrix lost four yaw
+    misalignments).
 
     Why: in a hover the rotation within a window is mostly the loop's own answer to the flow's
     quantization. The companion's velocity comes from the counts, a count that flips moves the
@@ -529,10 +530,9 @@ def quiet_windows(fp: FlowProblem, count_rad: float) -> np.ndarray:
     one manoeuvre, whose scale is then the quiet windows' wrong one (a true scale of 0.91 refused)."""
     W = fp.flow.idx
     if count_rad <= 0 or len(W) == 0:
-        return np.zeros((2, len(W)), dtype=bool)
+        return np.zeros(len(W), dtype=bool)
     rms = np.sqrt(np.mean((fp._Rw @ fp.P) ** 2, axis=2))
-    quiet = np.all(rms < QUIET_ROTATION_COUNTS * count_rad, axis=0)
-    return np.stack([quiet, quiet])
+    return np.all(rms < QUIET_ROTATION_COUNTS * count_rad, axis=0)
 
 
 def ar_whitener(e: np.ndarray, order: int = WHITEN_ORDER) -> Callable[[np.ndarray], np.ndarray]:
@@ -639,16 +639,15 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
     e0 = base.flow_residual(p_a)
     keep = ~quiet_windows(base, data.flow_resolution_rad * math.sqrt(12.0))
     if len(fp.flow.idx) and not keep.all():
-        data.notes.append(f"{int((~keep[0]).sum())} of {keep.shape[1]} flow windows left out of the flow channels: "
+        data.notes.append(f"{int((~keep).sum())} of {len(keep)} flow windows left out of the flow channels: "
                           f"under {QUIET_ROTATION_COUNTS:g} count of rotation on both axes, what rotation there is "
                           f"is the loop's answer to the flow's own rounding")
 
-    def kept(f: Callable[[np.ndarray], np.ndarray], k: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
-        return lambda r: f(r)[k]
+    def kept(f: Callable[[np.ndarray], np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
+        return lambda r: f(r)[keep]
 
-    whiten = state.whiten = [kept(ar_whitener(e0[i][keep[i]]), keep[i]) for i in (0, 1)]
-    nl = max(fp.flow.idx.shape[1] - WHITEN_ORDER, 0)
-    state.n_flow_rows = (int(keep[0].sum()) * nl, int(keep[1].sum()) * nl)
+    whiten = state.whiten = [kept(ar_whitener(e0[0][keep])), kept(ar_whitener(e0[1][keep]))]
+    state.n_flow_rows = int(keep.sum()) * max(fp.flow.idx.shape[1] - WHITEN_ORDER, 0)
 
     def residuals(p: np.ndarray) -> list[np.ndarray]:
         s, e = state.start_end
@@ -656,8 +655,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
         r = fp.force_residual(p, s, e)
         return [whiten[0](f[0]).ravel(), whiten[1](f[1]).ravel(), r[0], r[1]]
 
-    tfx, tfy = (data.t_s[fp.flow.idx[keep[i], WHITEN_ORDER:]].ravel() if len(fp.flow.idx) else np.zeros(0)
-                for i in (0, 1))
+    tf = data.t_s[fp.flow.idx[keep, WHITEN_ORDER:]].ravel() if len(fp.flow.idx) else np.zeros(0)
     tw = 0.5 * (fp.force.t_start_s + fp.force.t_end_s)
     a_min = float(np.nanmin(data.range_m))
     # a rangefinder offset of half the lowest height is far beyond any mounting error: a fit that
@@ -671,7 +669,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
         steps=np.array([1e-3, 1e-3, 1e-3, 1e-3, 2e-3, 1e-2, 1e-2, 1e-2, 1e-3, 1e-2, 1e-3]), lower=lower, upper=upper,
         channels=("flow_x", "flow_y", "force_x", "force_y"), units=("rad", "rad", "N", "N"),
         floors=(max(data.flow_resolution_rad, 1e-5),) * 2 + (1e-3, 1e-3), residuals=residuals,
-        row_times=[tfx, tfy, tw, tw],
+        row_times=[tf, tf, tw, tw],
         candidates=[Candidate(e, ps, physical=phys, matters=threshold(e)) for e, ps, phys in (
             ("flow_scale", ("scale_x", "scale_y"), _plausible_scale),
             ("flow_yaw_misalignment", ("yaw",), None),

@@ -240,9 +240,7 @@ def _correlation(cr: np.ndarray, Hi: np.ndarray) -> tuple[np.ndarray, bool]:
         return np.clip(out, -1.0, 1.0)
 
     c_cr, c_as = corr(cr), corr(Hi)
-    if not (np.all(np.isfinite(c_cr)) and np.all(np.isfinite(c_as))):
-        return c_cr, False
-    if len(cr) == 0:
+    if len(cr) == 0 or not (np.all(np.isfinite(c_cr)) and np.all(np.isfinite(c_as))):
         return c_cr, False
     if not np.all(np.diag(cr) > 0.0):  # the sandwich says nothing along some parameter (one block)
         return c_as, True
