@@ -86,6 +86,29 @@ def ramp_integral(t: np.ndarray, start_s: float | np.ndarray, end_s: float | np.
     return 0.5 * on * on + d * np.maximum(t - end, 0.0)
 
 
+def _bridge_plan(lost: np.ndarray) -> tuple[np.ndarray, ...] | None:
+    """For the lost entries of ``lost`` (n_windows, m): their (window, position), the nearest
+    recorded positions left and right in the same window (one side's when the other has none) and
+    the left one's linear-interpolation weight; None when nothing is lost (or nothing is recorded)."""
+    if not np.any(lost) or np.all(lost):
+        return None
+    n, m = lost.shape
+    pos = np.arange(m)
+    rec_pos = np.where(lost, -1, pos)
+    left = np.maximum.accumulate(rec_pos, axis=1)  # nearest recorded at or before (-1: none)
+    rec_pos_r = np.where(lost, m, pos)
+    right = np.minimum.accumulate(rec_pos_r[:, ::-1], axis=1)[:, ::-1]  # at or after (m: none)
+    w, j = np.nonzero(lost)
+    jl, jr = left[w, j], right[w, j]
+    keep = (jl >= 0) | (jr < m)  # a window with nothing recorded keeps its bridged steps
+    w, j, jl, jr = w[keep], j[keep], jl[keep], jr[keep]
+    jl_ok, jr_ok = jl >= 0, jr < m
+    al = np.where(jl_ok & jr_ok, (jr - j) / np.maximum(jr - jl, 1), np.where(jl_ok, 1.0, 0.0))
+    jl = np.where(jl_ok, jl, jr)
+    jr = np.where(jr_ok, jr, jl)
+    return w, j, jl, jr, al.astype(float)
+
+
 @dataclass
 class Windows:
     """Index structure of one channel's windows (flat frame indices)."""
@@ -259,6 +282,10 @@ class FlowProblem:
         # windowed constants of the flow channel
         W = self.flow.idx
         self._Phiw = self.Phi[:, W]
+        #: per window, the increments into frames whose flow was lost (bridged), and the recorded
+        #: increments either side of each that the flow residual takes its step from there
+        #: (``flow_residual``)
+        self._lost = _bridge_plan(~data.flow_rec[W][:, 1:] if len(W) else np.zeros((0, self.L1 - 1), dtype=bool))
         self._Rw = self.R[:, W]  # constant gathers of every flow-residual evaluation
         self._RAw = self.RA[:, W]
         self._rot_cache = _Cache()
@@ -391,6 +418,16 @@ class FlowProblem:
         e = self._Phiw.copy()
         e[0] -= (c * body[0] + s * body[1]) / kx
         e[1] -= (-s * body[0] + c * body[1]) / ky
+        if self._lost is not None:
+            # a lost frame's increment was bridged from the attitude's rotation (no delay, no
+            # gain, no scale) and the neighbours' translation: the extraction's guess, not a
+            # measurement, which would pull a delay, a gain or a scale towards the nominal model.
+            # The residual's step over it is interpolated from the recorded steps either side
+            # (the residual is smooth: the translation the cubic removes, and what the effects add)
+            w, j, jl, jr, al = self._lost
+            inc = np.diff(e, axis=-1)
+            inc[:, w, j] = al * inc[:, w, jl] + (1.0 - al) * inc[:, w, jr]
+            e = np.concatenate([e[..., :1], e[..., :1] + np.cumsum(inc, axis=-1)], axis=-1)
         e = e @ self.P
         return e if self._flow_offset is None else e + self._flow_offset
 
