@@ -308,3 +308,41 @@ def test_a_lossy_flows_delay_is_not_pulled_towards_the_bridged_guess():
 
     best = grid[int(np.argmin([sse(d) for d in grid]))]
     assert abs(best - 0.01) <= 0.0005
+
+
+@pytest.mark.parametrize("gyro_noise", [0.0, 0.5])
+def test_a_tie_between_rotation_sources_goes_to_the_gyro(gyro_noise):
+    """The flow's rotation source: the attitude estimate only where it explains the flow better
+    than the gyro fused with it by more than ``SOURCE_TIE``. A flow that sees 1.15 times the
+    rotation (a rotation gain: both sources' nominal residuals are its signature) of an exact
+    attitude and gyro: a tie (the attitude's residual is 0.2 % lower), which goes to the gyro,
+    and the report says why; with 0.5 rad/s of white noise on the gyro, the attitude."""
+    from companion.diagnose.closed_loop.groups import SOURCE_TIE, flow_group
+
+    assert 0.0 < SOURCE_TIE < 0.1
+    cfg = load_config("configs/paper.toml")
+    rng = np.random.default_rng(7)
+    t = np.arange(2000) * 0.02
+    w = 2 * np.pi * np.array([0.9, 2.3, 1.1, 1.9])
+    pitch = 0.03 * np.sin(w[0] * t) + 0.02 * np.sin(w[1] * t + 0.5)
+    roll = 0.03 * np.sin(w[2] * t + 1.0) + 0.02 * np.sin(w[3] * t)
+    gy = 0.03 * w[0] * np.cos(w[0] * t) + 0.02 * w[1] * np.cos(w[1] * t + 0.5)
+    gx = 0.03 * w[2] * np.cos(w[2] * t + 1.0) + 0.02 * w[3] * np.cos(w[3] * t)
+    gy = gy + gyro_noise * rng.standard_normal(len(t))
+    gx = gx + gyro_noise * rng.standard_normal(len(t))
+    ang_y, fine_y = gyro_spline(t, t, gy, 0.6)
+    ang_x, fine_x = gyro_spline(t, t, gx, 0.6)
+    data = _flight(t, pitch, roll, gy, gx, gyro_angle_x_rad=ang_x, gyro_angle_y_rad=ang_y,
+                   gyro_fine_x_rad_s=fine_x, gyro_fine_y_rad_s=fine_y)
+    # the flow of the paper's model (range 1 m) with a rotation gain of 1.15:
+    # phi = 1.15 s (angle - angle0) - integral(v), v' = s g tan(angle)
+    for name, sgn, ang in (("dphi_x_rad", -1.0, pitch), ("dphi_y_rad", 1.0, roll)):
+        v = np.r_[0.0, np.cumsum(0.5 * np.diff(t) * sgn * 9.81 * (np.tan(ang[1:]) + np.tan(ang[:-1])))]
+        y = np.r_[0.0, np.cumsum(0.5 * np.diff(t) * (v[1:] + v[:-1]))]
+        setattr(data, name, np.r_[0.0, np.diff(1.15 * sgn * ang - y)])
+    flow_group(data, cfg)
+    chose_gyro = [n for n in data.notes if n.startswith("the flow's rotation from the gyro")]
+    if gyro_noise == 0.0:
+        assert len(chose_gyro) == 1 and "as good as the attitude estimate" in chose_gyro[0]
+    else:
+        assert not chose_gyro
