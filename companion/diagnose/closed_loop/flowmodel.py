@@ -92,7 +92,7 @@ def _bridge_plan(lost: np.ndarray) -> tuple[np.ndarray, ...] | None:
     the left one's linear-interpolation weight; None when nothing is lost (or nothing is recorded)."""
     if not np.any(lost) or np.all(lost):
         return None
-    n, m = lost.shape
+    m = lost.shape[1]
     pos = np.arange(m)
     rec_pos = np.where(lost, -1, pos)
     left = np.maximum.accumulate(rec_pos, axis=1)  # nearest recorded at or before (-1: none)

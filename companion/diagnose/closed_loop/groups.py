@@ -217,7 +217,8 @@ def flow_timing_sigma_s(data: FlightData, rotation_stream: str | None) -> float:
     C2 cubic spline instead of PCHIP moved the delay by up to 1.9 ms (mean 1.0 ms), and the
     fitted delays missed the truth by a median 0.8 ms (up to 3 ms) while their statistical sigma
     was 0.03-0.5 ms (40 % of pulls within 2 sigma); a clean flight (no effect, 0.8 ms stamp jitter)
-    gave a 3.4 +- 0.57 ms delay. 1 ms at 50 Hz covers what was seen."""
+    gave a 3.4 +- 0.57 ms delay. With 1 ms at 50 Hz, every one of the matrix's 21 named flow
+    delays lies within 2 sigma of its truth (median |pull| 0.66)."""
     stamps = timing_sigma_s(data, "flow", rotation_stream) if rotation_stream else 0.0
     return math.hypot(stamps, FLOW_FRAME_TIMING_SHARE * data.frame_s)
 
