@@ -360,3 +360,35 @@ def test_searchsorted_equals_numpy(dtype, side):
             np.testing.assert_array_equal(got, np.searchsorted(a, q, side=side))
     assert native.searchsorted(np.arange(3), np.array([1]), side).tolist() == np.searchsorted(
         np.arange(3), [1], side=side).tolist()  # short: numpy's own call
+
+
+def test_wind_scan_equals_numpy(monkeypatch):
+    """The wind search's compiled scan against ``_scan_gains`` and numpy's argmax, replicate by
+    replicate: random residuals and weights (windows of no weight, windows too short), ties
+    (a residual of zeros: every allowed gain 0, the first one wins), no window allowed at all (gain
+    -1 at index 0), and one pooled window."""
+    from companion.diagnose.closed_loop import wind
+
+    rng = np.random.default_rng(4)
+    cases = []
+    for m in (1, 2, 7, 40, 161):
+        t = np.cumsum(rng.uniform(0.5, 1.5, m + 1))
+        b0, b1 = t[:-1], t[1:]
+        for wp in (np.ones(m), rng.integers(0, 3, m).astype(float), np.zeros(m)):
+            for min_s in (0.0, 4.0, 1e9):
+                ep = rng.normal(size=(5, 2, m)) * rng.uniform(0.1, 3.0)
+                ep[0] = 0.0
+                cases.append((wind._cumulative(ep), wp, b0, b1, min_s))
+    for ce, wp, b0, b1, min_s in cases:
+        got = wind._best_windows(ce, wp, b0, b1, min_s)
+        monkeypatch.setenv("FLOWHOLD_NATIVE", "0")
+        want = wind._best_windows(ce, wp, b0, b1, min_s)
+        monkeypatch.delenv("FLOWHOLD_NATIVE")
+        np.testing.assert_array_equal(got[1], want[1])
+        np.testing.assert_array_equal(got[0], want[0])
+        grid = wind._ScanGrid(wp, b0, b1, min_s)
+        for r in range(len(ce)):  # the numpy path is _scan_gains's maximum and numpy's argmax
+            g = wind._scan_gains(ce[r], grid)
+            assert want[1][r] == np.argmax(g) and want[0][r] == g.max()
+    gains = [wind._best_windows(*c)[0] for c in cases]
+    assert any(np.all(g == -1.0) for g in gains) and any(g[0] == 0.0 and np.all(g[1:] > 0) for g in gains)

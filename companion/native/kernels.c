@@ -8,7 +8,9 @@
  *   fh_tables, fh_fields <- companion/recordings/tlog_reader.py, _tables_numpy (_decode_fast), the first
  *                    the tables' rows, the second the fields asked for;
  *   fh_csv_rows   <- companion/tools/csv_format.py, format_rows (itself Python's % formatting);
- *   fh_searchsorted_* <- numpy.searchsorted on a sorted array (companion/native.py, searchsorted).
+ *   fh_searchsorted_* <- numpy.searchsorted on a sorted array (companion/native.py, searchsorted);
+ *   fh_lfilter2   <- scipy.signal.lfilter of order 2 (companion/diagnose/filters.py, lfilter);
+ *   fh_wind_scan  <- companion/diagnose/closed_loop/wind.py, _scan_gains and its argmax.
  * The tests hold each equal to the one it copies (tests/test_native.py). Loaded through ctypes by
  * companion/native.py, which compiles this file once with the system's C compiler.
  *
@@ -32,7 +34,7 @@
 #define CRC_LEN 2
 
 /* ABI version: companion/native.py refuses a library whose fh_version differs */
-int32_t fh_version(void) { return 11; }
+int32_t fh_version(void) { return 12; }
 
 /* ------------------------------------------------------------------------------------------- */
 /* CRC-16/MCRF4XX (X.25). crc_tab[k][b]: the CRC contribution of byte b followed by k zero bytes
@@ -662,4 +664,36 @@ void fh_lfilter2(const double *b, const double *a, const double *x, int64_t n, d
     }
     z[0] = z0;
     z[1] = z1;
+}
+
+/* ------------------------------------------------------------------------------------------- */
+/* The wind search's scan (companion/diagnose/closed_loop/wind.py, _scan_gains and its argmax),
+ * for R residuals at once: for each r, the largest explained sum of squares of one mean shift over
+ * pooled windows j1..j2-1 and its flat index j1 m + j2 - 1 in _scan_gains's (m, m) array, the
+ * first maximum in row-major order as numpy.argmax gives it (-1 at index 0 when no window is
+ * allowed). ce (R, 2, m + 1): each residual's cumulative sums from 0; cw (m + 1) the cumulative
+ * weights; b0, b1 (m) the pooled windows' start and end times. A window is allowed when it lasts
+ * at least min_s and has weight; its gain is (dx^2 + dy^2) / weight, as numpy computes it. */
+void fh_wind_scan(const double *ce, int64_t R, int64_t m, const double *cw, const double *b0, const double *b1,
+                  double min_s, double *gain, int64_t *flat) {
+    for (int64_t r = 0; r < R; r++) {
+        const double *cx = ce + r * 2 * (m + 1), *cy = cx + (m + 1);
+        double best = -1.0;
+        int64_t at = 0;
+        for (int64_t j1 = 0; j1 < m; j1++) {
+            const double x1 = cx[j1], y1 = cy[j1], w1 = cw[j1], t1 = b0[j1];
+            for (int64_t j2 = j1 + 1; j2 <= m; j2++) {
+                double nwt = cw[j2] - w1;
+                if (!(b1[j2 - 1] - t1 >= min_s) || !(nwt > 0)) continue;
+                double dx = cx[j2] - x1, dy = cy[j2] - y1;
+                double v = (dx * dx + dy * dy) / nwt;
+                if (v > best) {
+                    best = v;
+                    at = j1 * m + j2 - 1;
+                }
+            }
+        }
+        gain[r] = best;
+        flat[r] = at;
+    }
 }

@@ -32,6 +32,9 @@ from companion.diagnose.closed_loop.channels import FlightData
 #: step: interpolation cannot know where the jump fell)
 RESTART_AFTER_LOST = 1
 RESTART_JUMP_RAD = 0.02
+#: the free response of an initial rate is fitted over this many time constants of its slower pole
+#: (e^-45: it is 0 to double precision past them)
+FREE_RESPONSE_DECAYS = 45.0
 
 
 def discretise(omega_p: float, zeta: float, T: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -177,6 +180,12 @@ class AttitudeProblem:
         shape the loop's decay to it (a single segment included)."""
         Ad, _Bd, b, a = discretise(omega_p, zeta, self.T)
         L = max(s1 - s0 for s0, s1 in self.segments)
+        # the free response decays at the slower pole's rate: past FREE_RESPONSE_DECAYS of its
+        # time constants it is below 1e-19 of its start, so it is computed that far only (an
+        # hour's segment needs seconds of it)
+        decay = omega_p * (zeta - math.sqrt(zeta * zeta - 1.0) if zeta > 1.0 else zeta)
+        if decay > 0 and math.isfinite(decay):
+            L = min(L, int(math.ceil(FREE_RESPONSE_DECAYS / (decay * self.T))) + 2)
         Ainv = np.linalg.inv(Ad)
         xm1 = Ainv @ np.array([0.0, 1.0])
         xm2 = Ainv @ xm1
@@ -184,14 +193,15 @@ class AttitudeProblem:
         h, _ = filters.lfilter(b, a, np.zeros(L), zi=zi)
         out = e.copy()
         for s0, s1 in self.segments:
-            hs = h[: s1 - s0]
-            m = np.ones(s1 - s0, dtype=bool) if fit_mask is None else fit_mask[s0:s1]
-            m = m & np.all(np.isfinite(e[:, s0:s1]), axis=0)
+            n = min(s1 - s0, L)  # the response is 0 past L
+            hs = h[:n]
+            m = np.ones(n, dtype=bool) if fit_mask is None else fit_mask[s0:s0 + n]
+            m = m & np.all(np.isfinite(e[:, s0:s0 + n]), axis=0)
             den = float(hs[m] @ hs[m])
             if den <= 0:
                 continue
             for i in (0, 1):
-                out[i, s0:s1] -= (float(e[i, s0:s1][m] @ hs[m]) / den) * hs
+                out[i, s0:s0 + n] -= (float(e[i, s0:s0 + n][m] @ hs[m]) / den) * hs
         return out
 
     def residual(self, omega_p: float, zeta: float, delay_s: float = 0.0,

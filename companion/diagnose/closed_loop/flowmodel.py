@@ -165,12 +165,15 @@ class _Geometry:
         # spikes, and squared they would swamp the drag
         v = np.zeros_like(X)
         h = fp.h
+        t = fp.t
         for a, b in fp.data.segments():
             if b - a > 2 * h + 1:
-                k = np.arange(a, b)
+                # inside the segment lo = k - h, hi = k + h (slices); at its ends they are clipped
+                v[:, a + h:b - h] = (X[:, a + 2 * h:b] - X[:, a:b - 2 * h]) / (t[a + 2 * h:b] - t[a:b - 2 * h])
+                k = np.r_[a:a + h, b - h:b]
                 lo = np.clip(k - h, a, b - 1)
                 hi = np.clip(k + h, a, b - 1)
-                v[:, a:b] = (X[:, hi] - X[:, lo]) / (fp.t[hi] - fp.t[lo])
+                v[:, k] = (X[:, hi] - X[:, lo]) / (t[hi] - t[lo])
         q = v * np.abs(v)
         Q = np.zeros_like(X)  # integral of v|v| (as X is of v); the window's boundary means of its
         Q[:, 1:] = np.cumsum(0.5 * (q[:, 1:] + q[:, :-1]) * dt, axis=1)  # integral, as for dx

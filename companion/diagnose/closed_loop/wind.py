@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion import native
 from companion.diagnose.closed_loop.flowmodel import ramp_integral
 
 #: a window shorter than this is turbulence, not wind (s)
@@ -145,11 +146,9 @@ def _pool(e: np.ndarray, w: np.ndarray, tm0: np.ndarray, tm1: np.ndarray, max_m:
 def _scan(ep: np.ndarray, wp: np.ndarray, b0: np.ndarray, b1: np.ndarray, min_s: float) -> tuple[float, int, int]:
     """Largest explained sum of squares of one mean shift over pooled windows j1..j2-1 lasting at
     least ``min_s``: (gain, j1, j2). ``ep`` (2, m) pooled residual sums, ``wp`` (m,) weights."""
-    gain = _scan_gains(ep, _ScanGrid(wp, b0, b1, min_s))
-    m = ep.shape[1]
-    flat = int(np.argmax(gain))
-    a, b = divmod(flat, m)
-    return float(gain[a, b]), a, b + 1
+    gain, flat = _best_windows(_cumulative(ep)[None], wp, b0, b1, min_s)
+    a, b = divmod(int(flat[0]), ep.shape[1])
+    return float(gain[0]), a, b + 1
 
 
 class _ScanGrid:
@@ -167,12 +166,45 @@ class _ScanGrid:
         self.nwt = np.where(nwt > 0, nwt, 1.0)
 
 
-def _scan_gains(ep: np.ndarray, grid: _ScanGrid) -> np.ndarray:
+def _cumulative(ep: np.ndarray) -> np.ndarray:
+    """Cumulative sums from 0 along the last axis: (..., m) -> (..., m + 1)."""
+    out = np.zeros(ep.shape[:-1] + (ep.shape[-1] + 1,))
+    np.cumsum(ep, axis=-1, out=out[..., 1:])
+    return out
+
+
+def _scan_gains(ce: np.ndarray, grid: _ScanGrid) -> np.ndarray:
     """The explained sum of squares of every allowed window (-1 elsewhere) for the pooled
-    residual ``ep`` (2, m): shape (m, m), [j1, j2 - 1]."""
-    ce = np.concatenate([np.zeros((2, 1)), np.cumsum(ep, axis=1)], axis=1)
+    residual's cumulative sums ``ce`` (2, m + 1): shape (m, m), [j1, j2 - 1]."""
     num = ((ce[:, None, 1:] - ce[:, :-1, None]) ** 2).sum(axis=0)
     return np.where(grid.ok, num / grid.nwt, -1.0)
+
+
+def _best_windows(ce: np.ndarray, wp: np.ndarray, b0: np.ndarray, b1: np.ndarray, min_s: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """For R pooled residuals given by their cumulative sums ``ce`` (R, 2, m + 1): each one's
+    largest gain over the allowed windows and its flat index in ``_scan_gains``'s array (numpy's
+    argmax: the first maximum; -1 at 0 when no window is allowed). The compiled kernel
+    ``fh_wind_scan`` when loaded (tests/test_native.py holds the two equal), else ``_scan_gains``
+    one residual at a time (its (m, m) arrays stay in the cache)."""
+    R, m = ce.shape[0], ce.shape[-1] - 1
+    gain = np.empty(R)
+    flat = np.zeros(R, dtype=np.int64)
+    lib = native.kernels()
+    if lib is not None and m > 0:
+        ce = np.ascontiguousarray(ce, dtype=float)
+        cw = np.ascontiguousarray(_cumulative(np.asarray(wp, dtype=float)))
+        b0 = np.ascontiguousarray(b0, dtype=float)
+        b1 = np.ascontiguousarray(b1, dtype=float)
+        lib.fh_wind_scan(ce.ctypes.data, R, m, cw.ctypes.data, b0.ctypes.data, b1.ctypes.data, float(min_s),
+                         gain.ctypes.data, flat.ctypes.data)
+        return gain, flat
+    grid = _ScanGrid(wp, b0, b1, min_s)
+    for r in range(R):
+        g = _scan_gains(ce[r], grid)
+        flat[r] = int(np.argmax(g)) if g.size else 0
+        gain[r] = float(g.flat[flat[r]]) if g.size else -1.0
+    return gain, flat
 
 
 def null_pvalue(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, mask: np.ndarray | None = None,
@@ -221,9 +253,7 @@ def null_pvalue(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, 
             v += 2.0 * (1.0 - k / (L + 1)) * float(xi[k:] @ xi[:-k]) / n
         lr_var[i] = max(v, float(xi @ xi) / n, 1e-300)
     rng = np.random.default_rng(seed)
-    exceed = 0
     sd = np.sqrt(lr_var)[:, None] * np.sqrt(wp)[None, :]  # a pooled sum of wp windows
-    grid = _ScanGrid(wp, b0, b1, min_s)
-    for _ in range(reps):  # one replicate at a time: its (m, m) arrays stay in the cache
-        exceed += float(_scan_gains(rng.standard_normal(ep.shape) * sd, grid).max()) >= observed
+    null, _flat = _best_windows(_cumulative(rng.standard_normal((reps,) + ep.shape) * sd), wp, b0, b1, min_s)
+    exceed = int(np.count_nonzero(null >= observed))
     return (1 + exceed) / (reps + 1)
