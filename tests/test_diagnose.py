@@ -151,6 +151,26 @@ def test_a_segment_starts_without_the_attitude_noise():
     assert np.sqrt(np.mean(e ** 2)) == pytest.approx(noise, rel=0.1)
 
 
+@pytest.mark.parametrize(("omega_p", "zeta"), [(9.0, 0.7), (3.0, 1.0), (8.0, 3.0), (20.0, 0.05)])
+def test_the_free_response_is_fitted_where_it_is_not_yet_zero(monkeypatch, omega_p, zeta):
+    """The start's free response is fitted over ``FREE_RESPONSE_DECAYS`` time constants of its
+    slower pole only (for speed): the residual equals the one fitted over the whole segment to
+    1e-12 of its size, for an underdamped, a critically damped, an overdamped and a barely damped
+    loop, on every frame and on a mask of them, across lost commands (several segments)."""
+    from companion.diagnose.closed_loop import attitude
+
+    data = _delayed_loop_flight(2, 0.05, seed=11, n=3000)
+    mask = np.random.default_rng(1).random(data.n) > 0.3
+    ap = AttitudeProblem(data)
+    assert len(ap.segments) > 3
+    got = [ap.residual(omega_p, zeta, 0.01, fit_mask=m) for m in (None, mask)]
+    monkeypatch.setattr(attitude, "FREE_RESPONSE_DECAYS", 1e12)  # the whole segment
+    want = [ap.residual(omega_p, zeta, 0.01, fit_mask=m) for m in (None, mask)]
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(np.isnan(g), np.isnan(w))  # frames outside every segment
+        assert np.nanmax(np.abs(g - w)) <= 1e-12 * np.nanmax(np.abs(w))
+
+
 @pytest.mark.parametrize("lost_frac", [0.0, 0.1])
 def test_a_late_loop_is_fitted_as_late_across_lost_commands(lost_frac):
     """A loop that answers 3 frames (60 ms) late, with a tenth of its commands lost: the fit finds
