@@ -337,6 +337,11 @@ class FlowProblem:
 
     # -- model pieces --------------------------------------------------------------------------
 
+    def window_rotation(self) -> np.ndarray:
+        """The rotation R over each flow window with the window's cubic removed, as the flow
+        residual sees it: (2, n_windows, L1), rad."""
+        return self._Rw @ self.P
+
     def _rotation_at(self, delay_s: float) -> np.ndarray:
         """R(t - delay) at the flow windows' frames, (2, n_windows, L1): cubic spline through the
         recorded attitude of each segment (held at the segment's ends)."""

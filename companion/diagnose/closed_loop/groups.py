@@ -555,7 +555,7 @@ def quiet_windows(fp: FlowProblem, count_rad: float) -> np.ndarray:
     W = fp.flow.idx
     if count_rad <= 0 or len(W) == 0:
         return np.zeros(len(W), dtype=bool)
-    rms = np.sqrt(np.mean((fp._Rw @ fp.P) ** 2, axis=2))
+    rms = np.sqrt(np.mean(fp.window_rotation() ** 2, axis=2))
     return np.all(rms < QUIET_ROTATION_COUNTS * count_rad, axis=0)
 
 
