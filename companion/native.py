@@ -32,7 +32,7 @@ import numpy as np
 
 SOURCE = Path(__file__).resolve().parent / "native" / "kernels.c"
 #: the ABI the Python side expects (``fh_version`` in kernels.c)
-VERSION = 12
+VERSION = 13
 _FLAGS = ("-O2", "-std=c99", "-ffp-contract=off", "-shared", "-fPIC")
 _COMPILE_TIMEOUT_S = 120.0
 #: most threads the kernels run in at once (reading and formatting are memory-bound beyond a few)
@@ -106,6 +106,8 @@ def _declare(lib: ctypes.CDLL) -> None:
         getattr(lib, name).argtypes = (p, i64, p, i64, i32, p)
     lib.fh_lfilter2.restype = None
     lib.fh_lfilter2.argtypes = (p, p, p, i64, p, p)
+    lib.fh_lfilter2_segments.restype = None
+    lib.fh_lfilter2_segments.argtypes = (p, p, p, p, p, i64, p, p)
     lib.fh_wind_scan.restype = None
     lib.fh_wind_scan.argtypes = (p, i64, i64, p, p, p, ctypes.c_double, p, p)
     lib.fh_csv_rows.restype = i64

@@ -105,3 +105,62 @@ def test_the_filters_do_not_load_scipy_signal():
             "b, a = filters.butter2_lowpass(0.1); filters.filtfilt(b, a, np.arange(50.0)); "
             "from companion import native; assert native.kernels() is None or 'scipy.signal' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("k", range(4))
+def test_lfiltic_rows_is_lfiltic_row_by_row(k):
+    """The attitude simulation's initial states for all its segments at once: the same numbers
+    as ``lfiltic`` one segment at a time, to the bit."""
+    b, a = _filters()[k]
+    rng = np.random.default_rng(k)
+    y, x = rng.normal(size=(50, 2)), rng.normal(size=(50, 2))
+    rows = filters.lfiltic_rows(b, a, y, x)
+    for s in range(50):
+        np.testing.assert_array_equal(rows[s], filters.lfiltic(b, a, y[s], x[s]))
+
+
+def _stretches(rng, n, min_len):
+    cuts = np.sort(rng.choice(np.arange(1, n), n // 40, replace=False))
+    bounds = [(int(s0), int(s1)) for s0, s1 in zip(np.r_[0, cuts], np.r_[cuts, n], strict=True) if s1 - s0 >= min_len]
+    keep = rng.random(len(bounds)) < 0.8  # gaps between stretches as well
+    return np.array([b for b, k in zip(bounds, keep, strict=True) if k], dtype=np.int64)
+
+
+@pytest.mark.parametrize("k", range(4))
+def test_lfilter_segments_is_lfilter_per_stretch(path, k):
+    """Thousands of stretches (an hour of attitude restarted after every lost command) in one
+    call: each equals ``lfilter`` on the stretch alone with its own initial state, to the bit, and
+    the frames between stretches keep the fill."""
+    b, a = _filters()[k]
+    rng = np.random.default_rng(k)
+    n = 20000
+    x = rng.normal(size=n)
+    bounds = _stretches(rng, n, 1)
+    zi = rng.normal(size=(len(bounds), 2))
+    y = filters.lfilter_segments(b, a, x, bounds[:, 0], bounds[:, 1], zi, fill=-7.0)
+    inside = np.zeros(n, dtype=bool)
+    for (s0, s1), z in zip(bounds, zi, strict=True):
+        inside[s0:s1] = True
+        np.testing.assert_array_equal(y[s0:s1], filters.lfilter(b, a, x[s0:s1], z)[0])
+    assert np.all(y[~inside] == -7.0) and len(bounds) > 300
+
+
+@pytest.mark.parametrize("k", range(4))
+def test_filtfilt_segments_is_filtfilt_per_stretch(path, k):
+    """The loop-form check's zero-phase split over every segment at once: each stretch equals
+    ``filtfilt`` on it alone, to the bit, 0 between stretches; a stretch too short is refused as
+    ``filtfilt`` refuses it."""
+    b, a = _filters()[k]
+    rng = np.random.default_rng(10 + k)
+    n = 20000
+    x = rng.normal(size=n)
+    pad = 3 * max(len(a), len(b))
+    bounds = _stretches(rng, n, pad + 1)
+    y = filters.filtfilt_segments(b, a, x, bounds[:, 0], bounds[:, 1])
+    inside = np.zeros(n, dtype=bool)
+    for s0, s1 in bounds:
+        inside[s0:s1] = True
+        np.testing.assert_array_equal(y[s0:s1], filters.filtfilt(b, a, x[s0:s1]))
+    assert np.all(y[~inside] == 0.0) and len(bounds) > 100
+    with pytest.raises(ValueError, match="longer than"):
+        filters.filtfilt_segments(b, a, x, np.array([0]), np.array([pad]))

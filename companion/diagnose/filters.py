@@ -86,6 +86,41 @@ def lfilter(b: np.ndarray, a: np.ndarray, x: np.ndarray, zi: np.ndarray) -> tupl
     return y, z
 
 
+def lfiltic_rows(b: np.ndarray, a: np.ndarray, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``lfiltic(b, a, y[s], x[s])`` for every row s of y and x (each (nseg, 2): the past two
+    outputs and inputs, latest first) at once: (nseg, 2), the same arithmetic term for term."""
+    b3, a3 = _second_order(b, a)
+    y = np.asarray(y, dtype=float)
+    x = np.asarray(x, dtype=float)
+    zi = np.empty((len(y), 2))
+    zi[:, 0] = (b3[1] * x[:, 0] + b3[2] * x[:, 1]) - (a3[1] * y[:, 0] + a3[2] * y[:, 1])
+    zi[:, 1] = b3[2] * x[:, 0] - a3[2] * y[:, 0]
+    return zi
+
+
+def lfilter_segments(b: np.ndarray, a: np.ndarray, x: np.ndarray, starts: np.ndarray, stops: np.ndarray,
+                     zi: np.ndarray, fill: float = math.nan) -> np.ndarray:
+    """``lfilter(b, a, x[start:stop], zi[s])`` for each stretch s of the 1-D x, into one array
+    (``fill`` outside every stretch): the compiled kernel ``fh_lfilter2_segments`` in one call
+    when loaded (an hour's attitude restarted after every lost command is thousands of
+    stretches), else ``lfilter`` stretch by stretch; tests/test_native.py holds the two equal."""
+    b3, a3 = _second_order(b, a)
+    x = np.ascontiguousarray(x, dtype=float)
+    starts = np.ascontiguousarray(starts, dtype=np.int64)
+    stops = np.ascontiguousarray(stops, dtype=np.int64)
+    zi = np.ascontiguousarray(zi, dtype=float).reshape(len(starts), 2)
+    y = np.full_like(x, fill)
+    lib = native.kernels()
+    if lib is not None and x.ndim == 1:
+        lib.fh_lfilter2_segments(b3.ctypes.data, a3.ctypes.data, x.ctypes.data, starts.ctypes.data,
+                                 stops.ctypes.data, len(starts), zi.ctypes.data, y.ctypes.data)
+        return y
+    for s0, s1, z in zip(starts, stops, zi, strict=True):
+        if s1 > s0:
+            y[s0:s1], _ = lfilter(b3, a3, x[s0:s1], z)
+    return y
+
+
 def lfilter_zi(b: np.ndarray, a: np.ndarray) -> np.ndarray:
     """``scipy.signal.lfilter_zi(b, a)`` for order 2: the state of the step response's steady
     state, solving (I - companion(a)^T) zi = b[1:] - a[1:] b[0]."""
@@ -112,3 +147,42 @@ def filtfilt(b: np.ndarray, a: np.ndarray, x: np.ndarray, axis: int = -1) -> np.
         y, _ = lfilter(b, a, y[::-1], zi * y[-1])
         out[idx] = y[::-1][padlen:-padlen]
     return np.moveaxis(out, -1, axis)
+
+
+def filtfilt_segments(b: np.ndarray, a: np.ndarray, x: np.ndarray, starts: np.ndarray, stops: np.ndarray
+                      ) -> np.ndarray:
+    """``filtfilt(b, a, x[start:stop])`` for each stretch of the 1-D x (each longer than
+    3 max(len(a), len(b)) samples), into one array (0 outside every stretch): every stretch's odd
+    extension built at once and both passes run by ``lfilter_segments``, the same arithmetic as
+    ``filtfilt`` stretch by stretch (tests/test_filters.py)."""
+    x = np.asarray(x, dtype=float)
+    starts = np.asarray(starts, dtype=np.int64)
+    stops = np.asarray(stops, dtype=np.int64)
+    out = np.zeros_like(x)
+    if len(starts) == 0:
+        return out
+    pad = 3 * max(len(a), len(b))
+    lens = stops - starts
+    if np.any(lens <= pad):
+        raise ValueError(f"filtfilt: the signal must be longer than {pad} samples")
+    ext_len = lens + 2 * pad
+    ext_start = np.concatenate([[0], np.cumsum(ext_len)[:-1]])
+    seg = np.repeat(np.arange(len(starts)), ext_len)
+    pos = np.arange(int(ext_len.sum())) - ext_start[seg]
+    left = pos < pad
+    right = pos >= pad + lens[seg]
+    mid = ~left & ~right
+    src = starts[seg] + pos - pad  # the stretch itself
+    src[left] = starts[seg[left]] + pad - pos[left]  # row[pad:0:-1]
+    src[right] = stops[seg[right]] - 2 - (pos[right] - pad - lens[seg[right]])  # row[-2:-(pad + 2):-1]
+    ext = x[src]
+    ext[left] = 2 * x[starts[seg[left]]] - ext[left]
+    ext[right] = 2 * x[stops[seg[right]] - 1] - ext[right]
+    zi = lfilter_zi(b, a)
+    ext_stop = ext_start + ext_len
+    y = lfilter_segments(b, a, ext, ext_start, ext_stop, zi[None, :] * ext[ext_start][:, None], fill=0.0)
+    rev = ext_start[seg] + ext_len[seg] - 1 - pos  # each stretch reversed in place
+    yr = y[rev]
+    y2 = lfilter_segments(b, a, yr, ext_start, ext_stop, zi[None, :] * yr[ext_start][:, None], fill=0.0)
+    out[src[mid]] = y2[rev][mid]
+    return out

@@ -9,7 +9,8 @@
  *                    the tables' rows, the second the fields asked for;
  *   fh_csv_rows   <- companion/tools/csv_format.py, format_rows (itself Python's % formatting);
  *   fh_searchsorted_* <- numpy.searchsorted on a sorted array (companion/native.py, searchsorted);
- *   fh_lfilter2   <- scipy.signal.lfilter of order 2 (companion/diagnose/filters.py, lfilter);
+ *   fh_lfilter2   <- scipy.signal.lfilter of order 2 (companion/diagnose/filters.py, lfilter), and
+ *                    fh_lfilter2_segments the same over many stretches (filters.lfilter_segments);
  *   fh_wind_scan  <- companion/diagnose/closed_loop/wind.py, _scan_gains and its argmax.
  * The tests hold each equal to the one it copies (tests/test_native.py). Loaded through ctypes by
  * companion/native.py, which compiles this file once with the system's C compiler.
@@ -34,7 +35,7 @@
 #define CRC_LEN 2
 
 /* ABI version: companion/native.py refuses a library whose fh_version differs */
-int32_t fh_version(void) { return 12; }
+int32_t fh_version(void) { return 13; }
 
 /* ------------------------------------------------------------------------------------------- */
 /* CRC-16/MCRF4XX (X.25). crc_tab[k][b]: the CRC contribution of byte b followed by k zero bytes
@@ -695,5 +696,17 @@ void fh_wind_scan(const double *ce, int64_t R, int64_t m, const double *cw, cons
         }
         gain[r] = best;
         flat[r] = at;
+    }
+}
+
+/* ------------------------------------------------------------------------------------------- */
+/* fh_lfilter2 over each of nseg stretches [starts[s], stops[s]) of x, each started from its own
+ * state zi[2 s], zi[2 s + 1] (companion/diagnose/filters.py, lfilter_segments: lfilter once per
+ * stretch); y outside the stretches is left as it is. */
+void fh_lfilter2_segments(const double *b, const double *a, const double *x, const int64_t *starts,
+                          const int64_t *stops, int64_t nseg, const double *zi, double *y) {
+    for (int64_t s = 0; s < nseg; s++) {
+        double z[2] = {zi[2 * s], zi[2 * s + 1]};
+        if (stops[s] > starts[s]) fh_lfilter2(b, a, x + starts[s], stops[s] - starts[s], z, y + starts[s]);
     }
 }

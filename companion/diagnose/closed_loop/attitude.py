@@ -35,6 +35,9 @@ RESTART_JUMP_RAD = 0.02
 #: the free response of an initial rate is fitted over this many time constants of its slower pole
 #: (e^-45: it is 0 to double precision past them)
 FREE_RESPONSE_DECAYS = 45.0
+#: a segment's start rate is fitted only when its fitted frames hold more than this share of the
+#: free response's energy over the segment (less is rounding: the response is 0 at the start)
+FREE_FIT_MIN_SHARE = 1e-12
 
 
 def discretise(omega_p: float, zeta: float, T: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -133,6 +136,9 @@ class AttitudeProblem:
             else:
                 k = min(a + 1, b - 1)
                 self.rate0.append((self.y[:, k] - self.y[:, a]) / max(t[k] - t[a], 1e-6))
+        #: the segments' (start, stop) and starting rates as arrays (nseg, 2)
+        self._bounds = np.array(self.segments, dtype=np.int64).reshape(-1, 2)
+        self._rate0 = np.array(self.rate0, dtype=float).reshape(-1, 2)
 
     def delayed_command(self, delay_s: float) -> np.ndarray:
         """The command shifted by ``delay_s`` (fractional frames: frame-averaged), per segment of
@@ -161,15 +167,22 @@ class AttitudeProblem:
         Ainv = np.linalg.inv(Ad)
         u = self.delayed_command(delay_s)
         out = np.full_like(self.y, np.nan)
-        for (s0, s1), r0 in zip(self.segments, self.rate0, strict=True):
-            for i in (0, 1):
-                us = u[i, s0:s1]
-                x0 = np.array([self.y[i, s0], r0[i]])
-                um1 = us[0]
-                xm1 = Ainv @ (x0 - Bd * um1)
-                xm2 = Ainv @ (xm1 - Bd * um1)
-                zi = filters.lfiltic(b, a, [xm1[0], xm2[0]], [um1, um1])
-                out[i, s0:s1], _ = filters.lfilter(b, a, us, zi=zi)
+        if not self.segments:
+            return out
+        starts, stops = self._bounds[:, 0], self._bounds[:, 1]
+        for i in (0, 1):
+            # each segment's state at its start (angle, rate), taken back two frames under its
+            # first command: the filter's initial conditions (all segments at once)
+            um1 = u[i, starts]
+            w0 = self.y[i, starts] - Bd[0] * um1
+            w1 = self._rate0[:, i] - Bd[1] * um1
+            xm1_0 = Ainv[0, 0] * w0 + Ainv[0, 1] * w1
+            xm1_1 = Ainv[1, 0] * w0 + Ainv[1, 1] * w1
+            w0 = xm1_0 - Bd[0] * um1
+            w1 = xm1_1 - Bd[1] * um1
+            xm2_0 = Ainv[0, 0] * w0 + Ainv[0, 1] * w1
+            zi = filters.lfiltic_rows(b, a, np.stack([xm1_0, xm2_0], axis=1), np.stack([um1, um1], axis=1))
+            out[i] = filters.lfilter_segments(b, a, u[i], starts, stops, zi)
         return out
 
     def _free_rate(self, e: np.ndarray, omega_p: float, zeta: float, fit_mask: np.ndarray | None) -> np.ndarray:
@@ -191,17 +204,26 @@ class AttitudeProblem:
         xm2 = Ainv @ xm1
         zi = filters.lfiltic(b, a, [xm1[0], xm2[0]], [0.0, 0.0])
         h, _ = filters.lfilter(b, a, np.zeros(L), zi=zi)
+        # every segment's first min(length, L) frames at once: frame, segment, frames since start
+        starts, stops = self._bounds[:, 0], self._bounds[:, 1]
+        lens = np.minimum(stops - starts, L)  # the response is 0 past L
+        seg = np.repeat(np.arange(len(starts)), lens)
+        k = np.arange(int(lens.sum())) - np.repeat(np.cumsum(lens) - lens, lens)
+        frames = starts[seg] + k
+        hs = h[k]
+        m = np.all(np.isfinite(e[:, frames]), axis=0)
+        if fit_mask is not None:
+            m &= fit_mask[frames]
+        hm = np.where(m, hs, 0.0)
+        den = np.bincount(seg, weights=hm * hm, minlength=len(starts))
+        # a segment whose fitted frames hold none of the response (only its first, where the
+        # response is 0 but for rounding) has no start rate to fit: e/h there is rounding over rounding
+        fit = den > FREE_FIT_MIN_SHARE * np.bincount(seg, weights=hs * hs, minlength=len(starts))
         out = e.copy()
-        for s0, s1 in self.segments:
-            n = min(s1 - s0, L)  # the response is 0 past L
-            hs = h[:n]
-            m = np.ones(n, dtype=bool) if fit_mask is None else fit_mask[s0:s0 + n]
-            m = m & np.all(np.isfinite(e[:, s0:s0 + n]), axis=0)
-            den = float(hs[m] @ hs[m])
-            if den <= 0:
-                continue
-            for i in (0, 1):
-                out[i, s0:s0 + n] -= (float(e[i, s0:s0 + n][m] @ hs[m]) / den) * hs
+        for i in (0, 1):
+            num = np.bincount(seg, weights=np.where(m, e[i, frames], 0.0) * hm, minlength=len(starts))
+            coef = np.where(fit, num / np.where(fit, den, 1.0), 0.0)
+            out[i, frames] -= coef[seg] * hs
         return out
 
     def residual(self, omega_p: float, zeta: float, delay_s: float = 0.0,

@@ -142,13 +142,16 @@ def split_residual(e: np.ndarray, segments: Sequence[tuple[int, int]], b: np.nda
     slow = np.zeros_like(e)
     fast = np.zeros_like(e)
     pad = 3 * max(len(a), len(b))
-    for s0, s1 in segments:
-        seg = np.nan_to_num(e[:, s0:s1])
-        if s1 - s0 <= pad:
-            continue
-        lo = filters.filtfilt(b, a, seg, axis=1)
-        slow[:, s0:s1] = lo
-        fast[:, s0:s1] = seg - lo
+    bounds = np.array([s for s in segments if s[1] - s[0] > pad], dtype=np.int64).reshape(-1, 2)
+    if len(bounds) == 0:
+        return slow, fast
+    x = np.nan_to_num(e)
+    inside = np.zeros(e.shape[1], dtype=bool)
+    for s0, s1 in bounds:
+        inside[s0:s1] = True
+    for i in range(e.shape[0]):
+        slow[i] = filters.filtfilt_segments(b, a, x[i], bounds[:, 0], bounds[:, 1])
+        fast[i] = np.where(inside, x[i] - slow[i], 0.0)
     return slow, fast
 
 
