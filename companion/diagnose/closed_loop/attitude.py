@@ -117,7 +117,7 @@ class AttitudeProblem:
         # three-point one-sided difference (a two-point one gives the rate half a frame late, and a
         # simulation restarted often, after lost commands, would read that as a loop that answers
         # early)
-        self.rate0 = []
+        rate0: list[np.ndarray] = []
         t = data.t_s
         gyro = np.stack([data.gyro_x_rad_s, data.gyro_y_rad_s])  # roll, pitch rate (small angles)
         for a, b in self.segments:
@@ -127,18 +127,18 @@ class AttitudeProblem:
                 # is 0.1 rad/s). The fit does not depend on it (``_free_rate`` fits the start's rate
                 # out of the rows); the simulated attitude does: the unexplained terms' regressors
                 # and the loop-form check's split take it whole
-                self.rate0.append(gyro[:, a].copy())
+                rate0.append(gyro[:, a].copy())
             elif b - a >= 3:
                 h1, h2 = t[a + 1] - t[a], t[a + 2] - t[a]
                 y0, y1, y2 = self.y[:, a], self.y[:, a + 1], self.y[:, a + 2]
                 # derivative at t_a of the parabola through the three samples
-                self.rate0.append((y1 - y0) * h2 / (h1 * (h2 - h1)) - (y2 - y0) * h1 / (h2 * (h2 - h1)))
+                rate0.append((y1 - y0) * h2 / (h1 * (h2 - h1)) - (y2 - y0) * h1 / (h2 * (h2 - h1)))
             else:
                 k = min(a + 1, b - 1)
-                self.rate0.append((self.y[:, k] - self.y[:, a]) / max(t[k] - t[a], 1e-6))
-        #: the segments' (start, stop) and starting rates as arrays (nseg, 2)
+                rate0.append((self.y[:, k] - self.y[:, a]) / max(t[k] - t[a], 1e-6))
+        #: each segment's starting (roll, pitch) rate, (nseg, 2), and its (start, stop), (nseg, 2)
+        self.rate0 = np.array(rate0, dtype=float).reshape(-1, 2)
         self._bounds = np.array(self.segments, dtype=np.int64).reshape(-1, 2)
-        self._rate0 = np.array(self.rate0, dtype=float).reshape(-1, 2)
 
     def delayed_command(self, delay_s: float) -> np.ndarray:
         """The command shifted by ``delay_s`` (fractional frames: frame-averaged), per segment of
@@ -175,7 +175,7 @@ class AttitudeProblem:
             # first command: the filter's initial conditions (all segments at once)
             um1 = u[i, starts]
             w0 = self.y[i, starts] - Bd[0] * um1
-            w1 = self._rate0[:, i] - Bd[1] * um1
+            w1 = self.rate0[:, i] - Bd[1] * um1
             xm1_0 = Ainv[0, 0] * w0 + Ainv[0, 1] * w1
             xm1_1 = Ainv[1, 0] * w0 + Ainv[1, 1] * w1
             w0 = xm1_0 - Bd[0] * um1
