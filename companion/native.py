@@ -32,7 +32,7 @@ import numpy as np
 
 SOURCE = Path(__file__).resolve().parent / "native" / "kernels.c"
 #: the ABI the Python side expects (``fh_version`` in kernels.c)
-VERSION = 13
+VERSION = 14
 _FLAGS = ("-O2", "-std=c99", "-ffp-contract=off", "-shared", "-fPIC")
 _COMPILE_TIMEOUT_S = 120.0
 #: most threads the kernels run in at once (reading and formatting are memory-bound beyond a few)
@@ -110,6 +110,14 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.fh_lfilter2_segments.argtypes = (p, p, p, p, p, i64, p, p)
     lib.fh_wind_scan.restype = None
     lib.fh_wind_scan.argtypes = (p, i64, i64, p, p, p, ctypes.c_double, p, p)
+    lib.fh_hermite_shift.restype = None
+    lib.fh_hermite_shift.argtypes = (p, i64, p, p, p, p, i64, ctypes.c_double, p)
+    lib.fh_odometry_changes.restype = None
+    lib.fh_odometry_changes.argtypes = (p, i64, i64, p, p, p, p, p, p, p, i64, i64, p, p)
+    lib.fh_free_rate.restype = None
+    lib.fh_free_rate.argtypes = (p, i64, p, i64, p, p, i64, p, ctypes.c_double, p)
+    lib.fh_filtfilt2_segments.restype = None
+    lib.fh_filtfilt2_segments.argtypes = (p, p, p, p, p, p, i64, i64, p, p)
     lib.fh_csv_rows.restype = i64
     lib.fh_csv_rows.argtypes = (i64, i32, p, p, p, p, p, p, i64, i64)
 

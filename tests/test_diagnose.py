@@ -239,6 +239,17 @@ def _loop_form_of(data: FlightData):
     return chosen, final, loop_form(g, ap, chosen, final.p, 0.0, Settings())
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 10])
+def test_a_held_shift_is_the_clipped_gather(n):
+    """``attitude._held_shift`` (the delayed command by slices) equals x[:, clip(k - m)] for shifts
+    within, at and beyond the length, either way."""
+    from companion.diagnose.closed_loop.attitude import _held_shift
+
+    x = np.random.default_rng(n).normal(size=(2, n))
+    for m in range(-n - 2, n + 3):
+        np.testing.assert_array_equal(_held_shift(x, m), x[:, np.clip(np.arange(n) - m, 0, n - 1)])
+
+
 @pytest.mark.parametrize("noise_deg", [0.05, 1e-6])
 def test_a_second_order_loop_fits_alike_on_the_commands_slow_and_fast_parts(noise_deg):
     """The loop-form check (``excitation``) on what eq. 26 itself makes: the fits on the residual's
@@ -258,6 +269,36 @@ def test_a_second_order_loop_fits_alike_on_the_commands_slow_and_fast_parts(nois
         assert lf.z < lf.z_min
     assert not lf.matters and not lf.depends
     assert lf.widened("omega_p", 0.1) == 0.1
+
+
+def test_the_loop_form_split_is_filtfilt_per_segment():
+    """``excitation.Splitter``: per segment longer than the filter's padding, the slow part is
+    ``filtfilt`` of the residual there and the fast part the rest; shorter segments and frames
+    outside every segment give zero in both (NaN read as 0), whatever residual is split next."""
+    from companion.diagnose import filters
+    from companion.diagnose.closed_loop.excitation import Splitter, split_filter
+
+    rng = np.random.default_rng(5)
+    n = 900
+    cuts = np.sort(rng.choice(np.arange(1, n), 60, replace=False))
+    bounds = [(int(a), int(b)) for a, b in zip(np.r_[0, cuts], np.r_[cuts, n], strict=True)]
+    segments = [s for i, s in enumerate(bounds) if i % 7]  # some frames in no segment
+    _f, b, a = split_filter(0.02, 5.4)
+    pad = 3 * max(len(a), len(b))
+    assert any(s1 - s0 <= pad for s0, s1 in segments) and any(s1 - s0 > pad for s0, s1 in segments)
+    sp = Splitter(segments, b, a, n)
+    for _trial in range(2):
+        e = rng.normal(size=(2, n))
+        e[0, 17] = np.nan
+        slow, fast = sp.split(e)
+        x = np.nan_to_num(e)
+        want_slow, want_fast = np.zeros_like(e), np.zeros_like(e)
+        for s0, s1 in segments:
+            if s1 - s0 > pad:
+                want_slow[:, s0:s1] = filters.filtfilt(b, a, x[:, s0:s1], axis=1)
+                want_fast[:, s0:s1] = x[:, s0:s1] - want_slow[:, s0:s1]
+        np.testing.assert_allclose(slow, want_slow, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(fast, want_fast, rtol=0, atol=1e-12)
 
 
 def test_a_shaped_command_is_said_to_be_outside_the_second_order_loop():
@@ -404,6 +445,43 @@ def test_flow_and_force_channels_vanish_at_the_true_effects(exact_flight):
     # rounding (Q / sqrt(12) = 4.5e-4 rad) and a few mN
     assert flow_true < 5e-5 and flow_true < 0.01 * flow_nom
     assert force_true < 0.002 and force_true < 0.01 * force_nom
+
+
+def test_force_channel_odometry_equals_the_frame_by_frame_one(exact_flight):
+    """``force_parts`` combines the odometry's window changes from per-signal pieces (linear in the
+    geometry); they equal the frame-by-frame odometry of ``flow_velocity`` (its window changes, and
+    of its integral), for any geometry, across segments."""
+    keep = np.ones(exact_flight.n, dtype=bool)
+    keep[[300, 301, 302, 900]] = False  # three segments
+    fd = exact_flight.take(keep)
+    assert len(fd.segments()) == 3
+    fp = FlowProblem(fd, mass_kg=M, gravity_m_s2=G)
+    rng = np.random.default_rng(7)
+    k0, k1, h = fp.force.idx[:, 0], fp.force.idx[:, 1], fp.h
+    t = fd.t_s
+
+    def window_change(Z):
+        def avg(k):
+            return (Z[:, k + h] - Z[:, k - h]) / (t[k + h] - t[k - h])
+        return avg(k1) - avg(k0)
+
+    for trial in range(6):
+        p = NOMINAL.copy()
+        if trial:
+            p[IDX["scale_x"]], p[IDX["scale_y"]] = rng.uniform(0.7, 1.4, 2)
+            p[IDX["yaw"]] = rng.uniform(-0.5, 0.5)
+            p[IDX["delay"]] = [0.0, 0.013, -0.02, 0.031, 0.0][trial - 1]
+            p[IDX["offset"]] = rng.uniform(-0.2, 0.2)
+            p[IDX["gain"]] = rng.uniform(0.8, 1.2)
+            p[IDX["rz"]] = rng.uniform(-0.1, 0.1)
+        X, _Y = fp.flow_velocity(p)
+        IX = np.zeros_like(X)
+        IX[:, 1:] = np.cumsum(0.5 * (X[:, 1:] + X[:, :-1]) * np.diff(t), axis=1)
+        parts = fp.force_parts(p)
+        for key, ref in (("dv", window_change(X)), ("dx", window_change(IX))):
+            # the same sums in another order: round-off of the odometry's size (tens of metres)
+            np.testing.assert_allclose(parts[key], ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+            assert np.abs(ref).max() > 0.01
 
 
 def test_flow_model_recovers_every_parameter_from_exact_data(exact_flight):

@@ -162,5 +162,9 @@ def test_filtfilt_segments_is_filtfilt_per_stretch(path, k):
         inside[s0:s1] = True
         np.testing.assert_array_equal(y[s0:s1], filters.filtfilt(b, a, x[s0:s1]))
     assert np.all(y[~inside] == 0.0) and len(bounds) > 100
+    plan = filters.filtfilt_plan(bounds[:, 0], bounds[:, 1], pad)  # made once, for signal after signal
+    for x2 in (x, rng.normal(size=n)):
+        np.testing.assert_array_equal(filters.filtfilt_segments(b, a, x2, bounds[:, 0], bounds[:, 1], plan),
+                                      filters.filtfilt_segments(b, a, x2, bounds[:, 0], bounds[:, 1]))
     with pytest.raises(ValueError, match="longer than"):
         filters.filtfilt_segments(b, a, x, np.array([0]), np.array([pad]))

@@ -392,3 +392,81 @@ def test_wind_scan_equals_numpy(monkeypatch):
             assert want[1][r] == np.argmax(g) and want[0][r] == g.max()
     gains = [wind._best_windows(*c)[0] for c in cases]
     assert any(np.all(g == -1.0) for g in gains) and any(g[0] == 0.0 and np.all(g[1:] > 0) for g in gains)
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 0.013, -0.021, 0.02, 0.3, -0.5])
+def test_shift_and_odometry_changes_equal_numpy(monkeypatch, delay_s):
+    """The flow model's whole-flight Hermite shift (``fh_hermite_shift``) and the force channel's
+    odometry pieces (``fh_odometry_changes``) against numpy's ``_shifted`` and
+    ``_odometry_changes``, to the bit: a flight of several segments with jittered frame times,
+    delays between frames, of a whole frame, and past a segment's ends (held there); the pieces
+    of the shifted scene angle and of the four rotation rows."""
+    from companion.diagnose.closed_loop.channels import FlightData
+    from companion.diagnose.closed_loop.flowmodel import FlowProblem
+
+    rng = np.random.default_rng(11)
+    n = 1500
+    t = np.cumsum(rng.uniform(0.019, 0.021, n))
+    seg = np.repeat([0, 1, 2], [400, 700, 400])
+    z = np.zeros(n)
+    cols = dict(t_s=t, dt_s=np.r_[0.02, np.diff(t)], seg=seg, dphi_x_rad=rng.normal(0, 1e-3, n),
+                dphi_y_rad=rng.normal(0, 1e-3, n), gyro_x_rad_s=z, gyro_y_rad_s=z,
+                range_m=1.2 + 0.3 * np.sin(t), roll_rad=0.05 * np.sin(2 * t), pitch_rad=0.04 * np.cos(3 * t),
+                yaw_rad=z, roll_cmd_rad=z, pitch_cmd_rad=z, vx_set_m_s=z * np.nan, vy_set_m_s=z * np.nan,
+                truth_vx_m_s=z * np.nan, truth_vy_m_s=z * np.nan)
+    data = FlightData(path="synthetic", profile="paper", profile_reason="test", frame_s=0.02,
+                      command_source="test", **cols)
+    fp = FlowProblem(data, mass_kg=1.0, gravity_m_s2=9.81)
+    assert len(fp.force.idx) > 20
+    rows = np.concatenate([fp.R, fp.RA])
+
+    def run():
+        shifted = fp._shifted(fp.Phi, fp._dPhi, -delay_s)
+        return shifted, fp._odometry_changes(shifted), fp._odometry_changes(rows)
+
+    got = run()
+    monkeypatch.setenv("FLOWHOLD_NATIVE", "0")
+    want = run()
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+        assert np.all(np.isfinite(w)) and np.abs(w).max() > 0
+    if delay_s:  # the shift moves the scene angle (a test that compared the unshifted twice would pass too)
+        assert np.abs(want[0] - fp.Phi).max() > 1e-6
+
+
+@pytest.mark.parametrize("omega_p, zeta", [(5.4, 0.71), (2.0, 1.6), (30.0, 0.3)])
+def test_free_rate_equals_numpy(monkeypatch, omega_p, zeta):
+    """The attitude segments' start-rate fit (``fh_free_rate``) against numpy's bincounts in
+    ``AttitudeProblem._free_rate``, to the bit: hundreds of segments after lost commands, a long
+    one cut at the free response's length and short ones, NaN in the residual, with and without a
+    fit mask (one that leaves a segment only its first frame: no start rate fitted)."""
+    from companion.diagnose.closed_loop.attitude import AttitudeProblem
+    from companion.diagnose.closed_loop.channels import FlightData
+
+    rng = np.random.default_rng(3)
+    n = 6000
+    t = np.arange(n) * 0.02
+    z = np.zeros(n)
+    cmd_rec = rng.random(n) > 0.08
+    cmd_rec[:3000] = True  # one long segment
+    u = np.repeat(rng.uniform(-0.1, 0.1, n // 20), 20)
+    y = 0.8 * u + rng.normal(0, 1e-3, n)
+    data = FlightData(path="synthetic", profile="paper", profile_reason="test", frame_s=0.02, command_source="test",
+                      t_s=t, dt_s=np.r_[0.02, np.diff(t)], seg=np.zeros(n, dtype=int), dphi_x_rad=z, dphi_y_rad=z,
+                      gyro_x_rad_s=rng.normal(0, 0.05, n), gyro_y_rad_s=rng.normal(0, 0.05, n), range_m=np.ones(n),
+                      roll_rad=y, pitch_rad=-y, yaw_rad=z, roll_cmd_rad=u, pitch_cmd_rad=-u, vx_set_m_s=z * np.nan,
+                      vy_set_m_s=z * np.nan, truth_vx_m_s=z * np.nan, truth_vy_m_s=z * np.nan, cmd_rec=cmd_rec)
+    ap = AttitudeProblem(data)
+    assert len(ap.segments) > 200
+    e = ap.y - ap.simulate(omega_p, zeta, 0.01)
+    e[0, rng.choice(n, 50, replace=False)] = np.nan
+    mask = rng.random(n) > 0.1
+    a1, b1 = ap.segments[5]
+    mask[a1 + 1:b1] = False  # this segment's fitted frames: its first only
+    for fit_mask in (None, mask):
+        got = ap._free_rate(e, omega_p, zeta, fit_mask)
+        monkeypatch.setenv("FLOWHOLD_NATIVE", "0")
+        want = ap._free_rate(e, omega_p, zeta, fit_mask)
+        monkeypatch.delenv("FLOWHOLD_NATIVE")
+        np.testing.assert_array_equal(got, want)
+        assert np.nanmax(np.abs(want - e)) > 1e-6  # start rates were fitted out

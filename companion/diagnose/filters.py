@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -149,18 +150,89 @@ def filtfilt(b: np.ndarray, a: np.ndarray, x: np.ndarray, axis: int = -1) -> np.
     return np.moveaxis(out, -1, axis)
 
 
-def filtfilt_segments(b: np.ndarray, a: np.ndarray, x: np.ndarray, starts: np.ndarray, stops: np.ndarray
-                      ) -> np.ndarray:
+@dataclass(frozen=True)
+class FiltfiltPlan:
+    """Where ``filtfilt_segments`` takes each sample of the stretches' odd extensions from: it
+    depends on the stretches only, so a signal filtered again and again over the same stretches
+    (a fit's residuals) builds it once (``filtfilt_plan``)."""
+
+    pad: int
+    ext_start: np.ndarray  # each stretch's extension in the extended signal
+    ext_stop: np.ndarray
+    src: np.ndarray  # the x sample each extended sample is taken from (mirrored in the pads)
+    left: np.ndarray  # extended samples before each stretch (odd: 2 x[first] - mirrored), its first
+    left_end: np.ndarray
+    right: np.ndarray  # after each stretch, its last
+    right_end: np.ndarray
+    rev: np.ndarray  # each stretch's extension reversed in place
+    mid: np.ndarray  # the stretches' own samples, and their x indices
+    mid_src: np.ndarray
+
+
+def filtfilt_plan(starts: np.ndarray, stops: np.ndarray, pad: int) -> FiltfiltPlan:
+    """``filtfilt_segments``'s indices for the stretches [starts, stops), each longer than ``pad``."""
+    starts = np.asarray(starts, dtype=np.int64)
+    stops = np.asarray(stops, dtype=np.int64)
+    lens = stops - starts
+    if np.any(lens <= pad):
+        raise ValueError(f"filtfilt: the signal must be longer than {pad} samples")
+    ext_len = lens + 2 * pad
+    ext_start = np.concatenate([[0], np.cumsum(ext_len)[:-1]]).astype(np.int64)
+    seg = np.repeat(np.arange(len(starts)), ext_len)
+    pos = np.arange(int(ext_len.sum())) - ext_start[seg]
+    left = pos < pad
+    right = pos >= pad + lens[seg]
+    mid = ~left & ~right
+    src = starts[seg] + pos - pad  # the stretch itself
+    src[left] = starts[seg[left]] + pad - pos[left]  # row[pad:0:-1]
+    src[right] = stops[seg[right]] - 2 - (pos[right] - pad - lens[seg[right]])  # row[-2:-(pad + 2):-1]
+    rev = ext_start[seg] + ext_len[seg] - 1 - pos  # each stretch reversed in place
+    return FiltfiltPlan(pad, ext_start, ext_start + ext_len, src, left, starts[seg[left]], right, stops[seg[right]] - 1,
+                        rev, mid, src[mid])
+
+
+def filtfilt_segments(b: np.ndarray, a: np.ndarray, x: np.ndarray, starts: np.ndarray, stops: np.ndarray,
+                      plan: FiltfiltPlan | None = None) -> np.ndarray:
     """``filtfilt(b, a, x[start:stop])`` for each stretch of the 1-D x (each longer than
     3 max(len(a), len(b)) samples), into one array (0 outside every stretch): every stretch's odd
     extension built at once and both passes run by ``lfilter_segments``, the same arithmetic as
-    ``filtfilt`` stretch by stretch (tests/test_filters.py)."""
+    ``filtfilt`` stretch by stretch (tests/test_filters.py). ``plan``: ``filtfilt_plan`` of the
+    same stretches, when one signal after another is filtered over them."""
     x = np.asarray(x, dtype=float)
-    starts = np.asarray(starts, dtype=np.int64)
-    stops = np.asarray(stops, dtype=np.int64)
     out = np.zeros_like(x)
     if len(starts) == 0:
         return out
+    pad = 3 * max(len(a), len(b))
+    lib = native.kernels()
+    if lib is not None and x.ndim == 1:
+        # the compiled copy (``fh_filtfilt2_segments``, tests/test_filters.py holds the two equal)
+        starts = np.ascontiguousarray(starts, dtype=np.int64)
+        stops = np.ascontiguousarray(stops, dtype=np.int64)
+        lens = stops - starts
+        if np.any(lens <= pad):
+            raise ValueError(f"filtfilt: the signal must be longer than {pad} samples")
+        b3, a3 = _second_order(b, a)
+        zi = np.ascontiguousarray(lfilter_zi(b, a), dtype=float)
+        x = np.ascontiguousarray(x)
+        scratch = np.empty(3 * (int(lens.max()) + 2 * pad))
+        lib.fh_filtfilt2_segments(b3.ctypes.data, a3.ctypes.data, zi.ctypes.data, x.ctypes.data, starts.ctypes.data,
+                                  stops.ctypes.data, len(starts), pad, scratch.ctypes.data, out.ctypes.data)
+        return out
+    if plan is None:
+        plan = filtfilt_plan(starts, stops, pad)
+    elif plan.pad != pad or len(plan.ext_start) != len(starts):
+        raise ValueError("filtfilt_segments: the plan is for other stretches or another filter order")
+    ext = x[plan.src]
+    ext[plan.left] = 2 * x[plan.left_end] - ext[plan.left]
+    ext[plan.right] = 2 * x[plan.right_end] - ext[plan.right]
+    zi = lfilter_zi(b, a)
+    y = lfilter_segments(b, a, ext, plan.ext_start, plan.ext_stop, zi[None, :] * ext[plan.ext_start][:, None],
+                         fill=0.0)
+    yr = y[plan.rev]
+    y2 = lfilter_segments(b, a, yr, plan.ext_start, plan.ext_stop, zi[None, :] * yr[plan.ext_start][:, None],
+                          fill=0.0)
+    out[plan.mid_src] = y2[plan.rev][plan.mid]
+    return out
     pad = 3 * max(len(a), len(b))
     lens = stops - starts
     if np.any(lens <= pad):

@@ -35,7 +35,7 @@
 #define CRC_LEN 2
 
 /* ABI version: companion/native.py refuses a library whose fh_version differs */
-int32_t fh_version(void) { return 13; }
+int32_t fh_version(void) { return 14; }
 
 /* ------------------------------------------------------------------------------------------- */
 /* CRC-16/MCRF4XX (X.25). crc_tab[k][b]: the CRC contribution of byte b followed by k zero bytes
@@ -708,5 +708,138 @@ void fh_lfilter2_segments(const double *b, const double *a, const double *x, con
     for (int64_t s = 0; s < nseg; s++) {
         double z[2] = {zi[2 * s], zi[2 * s + 1]};
         if (stops[s] > starts[s]) fh_lfilter2(b, a, x + starts[s], stops[s] - starts[s], z, y + starts[s]);
+    }
+}
+
+/* ------------------------------------------------------------------------------------------- */
+/* y(t - delay) at every frame, each of the `rows` rows of y and dy (rows, n): its value and rate
+ * (companion/diagnose/closed_loop/flowmodel.py: FlowProblem._shift_plan and _shifted with idx
+ * None), term for term: cubic Hermite between frames j, j + 1, the query time held at its frame's
+ * segment's ends (seg_t0: the segment's first time, seg_last: its last frame). */
+void fh_hermite_shift(const double *t, int64_t n, const double *seg_t0, const int64_t *seg_last, const double *y,
+                      const double *dy, int64_t rows, double delay, double *out) {
+    int64_t j = 0;
+    for (int64_t k = 0; k < n; k++) {
+        double tq = t[k] - delay, hi = t[seg_last[k]];
+        if (tq < seg_t0[k]) tq = seg_t0[k];
+        if (tq > hi) tq = hi;
+        /* searchsorted(t, tq, "right") - 1: the last frame at or before tq (tq moves on with k) */
+        while (j > 0 && t[j] > tq) j--;
+        while (j + 1 < n && t[j + 1] <= tq) j++;
+        int64_t jj = (t[j] <= tq) ? j : j - 1;
+        if (jj > n - 2) jj = n - 2;
+        if (jj < 0) jj = 0;
+        int64_t lim = seg_last[k] - 1 > 0 ? seg_last[k] - 1 : 0;
+        if (jj > lim) jj = lim;
+        double hh = t[jj + 1] - t[jj];
+        double u = (tq - t[jj]) / hh;
+        if (u < 0.0) u = 0.0;
+        if (u > 1.0) u = 1.0;
+        double om = 1.0 - u, sq = om * om;
+        double w00 = (1.0 + 2.0 * u) * sq, w10 = (u * sq) * hh, w01 = (u * u) * (3.0 - 2.0 * u);
+        double w11 = ((u * u) * (u - 1.0)) * hh;
+        for (int64_t i = 0; i < rows; i++) {
+            const double *yi = y + i * n, *di = dy + i * n;
+            out[i * n + k] = w00 * yi[jj] + w10 * di[jj] + w01 * yi[jj + 1] + w11 * di[jj + 1];
+        }
+    }
+}
+
+/* ------------------------------------------------------------------------------------------- */
+/* The force channel's pieces of the odometry of each of the `rows` scene-angle rows S (rows, n)
+ * (companion/diagnose/closed_loop/flowmodel.py, FlowProblem._odometry_changes), term for term,
+ * without its whole-flight arrays: the increments S[k+1] - S[k] (0 where a segment starts at
+ * k + 1: first) times the range between frames amid (n - 1) and times 1, summed into X, X's
+ * trapezoidal integral IX (dt: n - 1), and per force window [k0, k1] the change of the boundary
+ * means (Z[k + h] - Z[k - h]) / den. out (2 [dv from X, dx from IX], 2 [times A, times 1], rows, nw);
+ * scratch: 2 n doubles. */
+void fh_odometry_changes(const double *S, int64_t rows, int64_t n, const uint8_t *first, const double *amid,
+                         const double *dt, const int64_t *k0, const int64_t *k1, const double *den0,
+                         const double *den1, int64_t nw, int64_t h, double *scratch, double *out) {
+    double *X = scratch, *IX = scratch + n;
+    for (int64_t i = 0; i < rows; i++) {
+        const double *si = S + i * n;
+        for (int m = 0; m < 2; m++) {
+            X[0] = 0.0;
+            IX[0] = 0.0;
+            for (int64_t k = 0; k + 1 < n; k++) {
+                double d = first[k + 1] ? 0.0 : si[k + 1] - si[k];
+                X[k + 1] = X[k] + (m == 0 ? amid[k] * d : d);
+                IX[k + 1] = IX[k] + (0.5 * (X[k + 1] + X[k])) * dt[k];
+            }
+            double *dv = out + ((0 * 2 + m) * rows + i) * nw, *dx = out + ((1 * 2 + m) * rows + i) * nw;
+            for (int64_t w = 0; w < nw; w++) {
+                int64_t a = k0[w], b = k1[w];
+                dv[w] = (X[b + h] - X[b - h]) / den1[w] - (X[a + h] - X[a - h]) / den0[w];
+                dx[w] = (IX[b + h] - IX[b - h]) / den1[w] - (IX[a + h] - IX[a - h]) / den0[w];
+            }
+        }
+    }
+}
+
+/* ------------------------------------------------------------------------------------------- */
+/* Each attitude segment's start rate fitted out of the residual
+ * (companion/diagnose/closed_loop/attitude.py, AttitudeProblem._free_rate after the free response
+ * h (L) is made), term for term, sums in numpy.bincount's order: over the first min(length, L)
+ * frames f = start + k of each segment [starts[s], stops[s]), with m = e finite on both rows
+ * and fit_mask[f] (fit_mask NULL: every frame), hm = m ? h[k] : 0, den = sum hm hm,
+ * num_i = sum (m ? e[i, f] : 0) hm, fitted when den > min_share sum h[k] h[k], and
+ * out[i, f] = e[i, f] - coef_i h[k], coef_i = num_i / den (0 when not fitted). out (2, n) holds
+ * a copy of e on entry. */
+void fh_free_rate(const double *e, int64_t n, const double *h, int64_t L, const int64_t *starts, const int64_t *stops,
+                  int64_t nseg, const uint8_t *fit_mask, double min_share, double *out) {
+    const double *e0 = e, *e1 = e + n;
+    for (int64_t s = 0; s < nseg; s++) {
+        int64_t a = starts[s], len = stops[s] - starts[s];
+        if (len > L) len = L;
+        double den = 0.0, tot = 0.0, num0 = 0.0, num1 = 0.0;
+        for (int64_t k = 0; k < len; k++) {
+            int64_t f = a + k;
+            int m = isfinite(e0[f]) && isfinite(e1[f]) && (fit_mask == NULL || fit_mask[f]);
+            double hm = m ? h[k] : 0.0;
+            den += hm * hm;
+            tot += h[k] * h[k];
+            num0 += (m ? e0[f] : 0.0) * hm;
+            num1 += (m ? e1[f] : 0.0) * hm;
+        }
+        int fit = den > min_share * tot;
+        double c0 = fit ? num0 / den : 0.0, c1 = fit ? num1 / den : 0.0;
+        for (int64_t k = 0; k < len; k++) {
+            int64_t f = a + k;
+            out[f] = out[f] - c0 * h[k];
+            out[n + f] = out[n + f] - c1 * h[k];
+        }
+    }
+}
+
+/* ------------------------------------------------------------------------------------------- */
+/* scipy.signal.filtfilt of a second-order filter over each stretch [starts[s], stops[s]) of x
+ * (each longer than pad), as companion/diagnose/filters.py's filtfilt_segments computes it, term
+ * for term: the stretch's odd extension by pad samples at each end (2 x[first] - x[first + i],
+ * 2 x[last] - x[last - i]), fh_lfilter2 from zi times its first sample, reversed, again from zi
+ * times the first sample of the reversed output, reversed back into out. out outside the
+ * stretches is left as it is. scratch: 3 (longest stretch + 2 pad) doubles. */
+void fh_filtfilt2_segments(const double *b, const double *a, const double *zi, const double *x, const int64_t *starts,
+                           const int64_t *stops, int64_t nseg, int64_t pad, double *scratch, double *out) {
+    for (int64_t s = 0; s < nseg; s++) {
+        int64_t s0 = starts[s], s1 = stops[s], len = s1 - s0, m = len + 2 * pad;
+        if (len <= pad) continue;
+        double *ext = scratch, *y = scratch + m, *y2 = scratch + 2 * m;
+        for (int64_t p = 0; p < m; p++) {
+            if (p < pad) {
+                ext[p] = 2 * x[s0] - x[s0 + pad - p];
+            } else if (p >= pad + len) {
+                ext[p] = 2 * x[s1 - 1] - x[s1 - 2 - (p - pad - len)];
+            } else {
+                ext[p] = x[s0 + p - pad];
+            }
+        }
+        double z[2] = {zi[0] * ext[0], zi[1] * ext[0]};
+        fh_lfilter2(b, a, ext, m, z, y);
+        for (int64_t p = 0; p < m; p++) ext[p] = y[m - 1 - p];
+        z[0] = zi[0] * ext[0];
+        z[1] = zi[1] * ext[0];
+        fh_lfilter2(b, a, ext, m, z, y2);
+        for (int64_t i = 0; i < len; i++) out[s0 + i] = y2[m - 1 - (pad + i)];
     }
 }

@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 
+from companion import native
 from companion.diagnose import filters
 from companion.diagnose.closed_loop.channels import FlightData
 
@@ -84,6 +85,17 @@ def _transfer(Ad: np.ndarray, Bd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([0.0, b1, b2]), np.array([1.0, a1, a2])
 
 
+def _held_shift(x: np.ndarray, m: int) -> np.ndarray:
+    """x[:, clip(k - m, 0, len - 1)] for every column k (x shifted on by m columns, held at its
+    ends), by slices."""
+    n = x.shape[1]
+    if m >= n or -m >= n:
+        return np.repeat(x[:, :1] if m > 0 else x[:, -1:], n, axis=1)
+    if m >= 0:
+        return np.concatenate([np.repeat(x[:, :1], m, axis=1), x[:, :n - m]], axis=1)
+    return np.concatenate([x[:, -m:], np.repeat(x[:, -1:], -m, axis=1)], axis=1)
+
+
 class AttitudeProblem:
     """Output-error simulation of the attitude loop over every segment of a flight."""
 
@@ -139,6 +151,9 @@ class AttitudeProblem:
         #: each segment's starting (roll, pitch) rate, (nseg, 2), and its (start, stop), (nseg, 2)
         self.rate0 = np.array(rate0, dtype=float).reshape(-1, 2)
         self._bounds = np.array(self.segments, dtype=np.int64).reshape(-1, 2)
+        self._free_cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._starts = np.ascontiguousarray(self._bounds[:, 0])
+        self._stops = np.ascontiguousarray(self._bounds[:, 1])
 
     def delayed_command(self, delay_s: float) -> np.ndarray:
         """The command shifted by ``delay_s`` (fractional frames: frame-averaged), per segment of
@@ -153,10 +168,7 @@ class AttitudeProblem:
         out = np.empty_like(self.u)
         for a, b in self.data.segments():
             seg = self.u[:, a:b]
-            idx = np.arange(b - a)
-            i0 = np.clip(idx - m, 0, b - a - 1)
-            i1 = np.clip(idx - m - 1, 0, b - a - 1)
-            out[:, a:b] = (1.0 - f) * seg[:, i0] + f * seg[:, i1]
+            out[:, a:b] = (1.0 - f) * _held_shift(seg, m) + f * _held_shift(seg, m + 1)
         return out
 
     def simulate(self, omega_p: float, zeta: float, delay_s: float = 0.0) -> np.ndarray:
@@ -192,7 +204,8 @@ class AttitudeProblem:
         wrong start would read as a loop answering early or late, and a fit of the dynamics would
         shape the loop's decay to it (a single segment included)."""
         Ad, _Bd, b, a = discretise(omega_p, zeta, self.T)
-        L = max(s1 - s0 for s0, s1 in self.segments)
+        starts, stops = self._bounds[:, 0], self._bounds[:, 1]
+        L = int((stops - starts).max())
         # the free response decays at the slower pole's rate: past FREE_RESPONSE_DECAYS of its
         # time constants it is below 1e-19 of its start, so it is computed that far only (an
         # hour's segment needs seconds of it)
@@ -204,12 +217,18 @@ class AttitudeProblem:
         xm2 = Ainv @ xm1
         zi = filters.lfiltic(b, a, [xm1[0], xm2[0]], [0.0, 0.0])
         h, _ = filters.lfilter(b, a, np.zeros(L), zi=zi)
-        # every segment's first min(length, L) frames at once: frame, segment, frames since start
-        starts, stops = self._bounds[:, 0], self._bounds[:, 1]
-        lens = np.minimum(stops - starts, L)  # the response is 0 past L
-        seg = np.repeat(np.arange(len(starts)), lens)
-        k = np.arange(int(lens.sum())) - np.repeat(np.cumsum(lens) - lens, lens)
-        frames = starts[seg] + k
+        lib = native.kernels()
+        if lib is not None and e.shape == (2, self.y.shape[1]):
+            # the compiled copy (``fh_free_rate``, tests/test_native.py holds the two equal)
+            e = np.ascontiguousarray(e, dtype=float)
+            out = e.copy()
+            h = np.ascontiguousarray(h, dtype=float)
+            mask = None if fit_mask is None else np.ascontiguousarray(fit_mask, dtype=np.uint8)
+            lib.fh_free_rate(e.ctypes.data, e.shape[1], h.ctypes.data, L, self._starts.ctypes.data,
+                             self._stops.ctypes.data, len(self._starts), None if mask is None else mask.ctypes.data,
+                             FREE_FIT_MIN_SHARE, out.ctypes.data)
+            return out
+        seg, k, frames = self._free_frames(L)
         hs = h[k]
         m = np.all(np.isfinite(e[:, frames]), axis=0)
         if fit_mask is not None:
@@ -225,6 +244,19 @@ class AttitudeProblem:
             coef = np.where(fit, num / np.where(fit, den, 1.0), 0.0)
             out[i, frames] -= coef[seg] * hs
         return out
+
+    def _free_frames(self, L: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every segment's first min(length, L) frames at once: (segment, frames since its start,
+        frame), kept for the last few L (a fit asks for the same again and again)."""
+        if L not in self._free_cache:
+            starts, stops = self._bounds[:, 0], self._bounds[:, 1]
+            lens = np.minimum(stops - starts, L)  # the response is 0 past L
+            seg = np.repeat(np.arange(len(starts)), lens)
+            k = np.arange(int(lens.sum())) - np.repeat(np.cumsum(lens) - lens, lens)
+            if len(self._free_cache) >= 4:
+                self._free_cache.pop(next(iter(self._free_cache)))
+            self._free_cache[L] = (seg, k, starts[seg] + k)
+        return self._free_cache[L]
 
     def residual(self, omega_p: float, zeta: float, delay_s: float = 0.0,
                  fit_mask: np.ndarray | None = None) -> np.ndarray:

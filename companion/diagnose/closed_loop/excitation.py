@@ -135,24 +135,34 @@ def split_filter(frame_s: float, omega_p: float) -> tuple[float, np.ndarray, np.
     return f, b, a
 
 
-def split_residual(e: np.ndarray, segments: Sequence[tuple[int, int]], b: np.ndarray, a: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The slow (zero-phase low-passed, per segment) and fast (the rest) parts of a (2, n) residual.
-    A segment too short to filter gives both parts zero there (it carries no split information)."""
-    slow = np.zeros_like(e)
-    fast = np.zeros_like(e)
-    pad = 3 * max(len(a), len(b))
-    bounds = np.array([s for s in segments if s[1] - s[0] > pad], dtype=np.int64).reshape(-1, 2)
-    if len(bounds) == 0:
+class Splitter:
+    """The slow (zero-phase low-passed, per segment) and fast (the rest) parts of (2, n)
+    residuals over fixed segments: ``split(e)``. A segment too short to filter gives both parts
+    zero there (it carries no split information). The segments' filtering plan is made once (a
+    lossy hour has thousands of segments, and a fit splits dozens of residuals)."""
+
+    def __init__(self, segments: Sequence[tuple[int, int]], b: np.ndarray, a: np.ndarray, n: int) -> None:
+        self.b, self.a = b, a
+        pad = 3 * max(len(a), len(b))
+        seg = np.array(segments, dtype=np.int64).reshape(-1, 2)
+        self.bounds = seg[seg[:, 1] - seg[:, 0] > pad]
+        # frames inside a kept segment: +1 at its start, -1 at its stop, summed
+        d = np.zeros(n + 1, dtype=np.int64)
+        np.add.at(d, self.bounds[:, 0], 1)
+        np.add.at(d, self.bounds[:, 1], -1)
+        self.inside = np.cumsum(d[:n]) > 0
+        self.plan = filters.filtfilt_plan(self.bounds[:, 0], self.bounds[:, 1], pad) if len(self.bounds) else None
+
+    def split(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        slow = np.zeros_like(e)
+        fast = np.zeros_like(e)
+        if self.plan is None:
+            return slow, fast
+        x = np.nan_to_num(e)
+        for i in range(e.shape[0]):
+            slow[i] = filters.filtfilt_segments(self.b, self.a, x[i], self.bounds[:, 0], self.bounds[:, 1], self.plan)
+            fast[i] = np.where(self.inside, x[i] - slow[i], 0.0)
         return slow, fast
-    x = np.nan_to_num(e)
-    inside = np.zeros(e.shape[1], dtype=bool)
-    for s0, s1 in bounds:
-        inside[s0:s1] = True
-    for i in range(e.shape[0]):
-        slow[i] = filters.filtfilt_segments(b, a, x[i], bounds[:, 0], bounds[:, 1])
-        fast[i] = np.where(inside, x[i] - slow[i], 0.0)
-    return slow, fast
 
 
 def loop_form(g: Group, ap: AttitudeProblem, chosen: Sequence[str], p_whole: np.ndarray, t0_s: float,
@@ -167,6 +177,7 @@ def loop_form(g: Group, ap: AttitudeProblem, chosen: Sequence[str], p_whole: np.
     free = sorted({i for c in g.candidates if c.effect in effects for i in g.index(c.params)})
     split_hz, b, a = split_filter(ap.T, float(p_whole[0]))
     rows = ap.rows
+    splitter = Splitter(ap.segments, b, a, ap.y.shape[1])
     # both parts' fits start at the whole flight's fit and take their first derivatives there: the
     # split residuals of the last few parameter vectors are kept, computed once for both parts
     memo: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = {}
@@ -177,7 +188,7 @@ def loop_form(g: Group, ap: AttitudeProblem, chosen: Sequence[str], p_whole: np.
             if len(memo) >= MEMO_SIZE:
                 memo.pop(next(iter(memo)))
             e = ap.residual(float(p[0]), float(p[1]), float(p[2]), fit_mask=rows)
-            memo[key] = split_residual(e, ap.segments, b, a)
+            memo[key] = splitter.split(e)
         return memo[key]
 
     t = time.perf_counter()

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from companion import native
 from companion.diagnose.closed_loop.channels import FlightData
 
 AXIS_SIGN = (-1.0, 1.0)
@@ -136,20 +137,14 @@ class _Cache:
         return value
 
 
-class _Geometry:
-    """The force channel's flow-odometry pieces for one sensor geometry: ``dv`` and ``dx`` at once,
-    the form-drag regressor ``dq`` on first use (it needs the odometry's rate over the whole
-    flight, the costliest part, and most residuals have no form drag)."""
+class _FormDrag:
+    """The force channel's form-drag regressor ``dq`` for one sensor geometry, made on first use:
+    it needs the odometry's rate over the whole flight, the costliest piece of the force channel,
+    and most residuals have no form drag."""
 
     def __init__(self, fp: FlowProblem, X: np.ndarray) -> None:
         self._fp = fp
         self._X = X
-        dt = fp._dt
-        IX = np.zeros_like(X)
-        IX[:, 1:] = np.cumsum(0.5 * (X[:, 1:] + X[:, :-1]) * dt, axis=1)  # used within segments
-        k0, k1, d0, d1 = fp._k0, fp._k1, fp._den0, fp._den1
-        self.dv = fp._bavg(X, k1, d1) - fp._bavg(X, k0, d0)
-        self.dx = fp._bavg(IX, k1, d1) - fp._bavg(IX, k0, d0)
         self._dq: np.ndarray | None = None
 
     def dq(self) -> np.ndarray:
@@ -159,7 +154,6 @@ class _Geometry:
 
     def _form_drag_regressor(self) -> np.ndarray:
         fp, X = self._fp, self._X
-        dt = fp._dt
         # the form-drag regressor: integral of v |v|, v the odometry's change over +-h frames (the
         # boundary-averaging span): a frame-to-frame derivative of quantized odometry is a train of
         # spikes, and squared they would swamp the drag
@@ -174,13 +168,9 @@ class _Geometry:
                 lo = np.clip(k - h, a, b - 1)
                 hi = np.clip(k + h, a, b - 1)
                 v[:, k] = (X[:, hi] - X[:, lo]) / (t[hi] - t[lo])
-        q = v * np.abs(v)
-        Q = np.zeros_like(X)  # integral of v|v| (as X is of v); the window's boundary means of its
-        Q[:, 1:] = np.cumsum(0.5 * (q[:, 1:] + q[:, :-1]) * dt, axis=1)  # integral, as for dx
-        IQ = np.zeros_like(X)
-        IQ[:, 1:] = np.cumsum(0.5 * (Q[:, 1:] + Q[:, :-1]) * dt, axis=1)
-        k0, k1, d0, d1 = fp._k0, fp._k1, fp._den0, fp._den1
-        return fp._bavg(IQ, k1, d1) - fp._bavg(IQ, k0, d0)
+        # integral of v|v| (as X is of v); the windows' change of its integral's boundary means, as
+        # for dx
+        return fp._window_means(fp._integral(fp._integral(v * np.abs(v))))
 
 
 class FlowProblem:
@@ -255,14 +245,6 @@ class FlowProblem:
             fwin = fwin[(bridged.mean(axis=1) <= BRIDGED_SHARE_MAX) & ~long_gap[fwin].any(axis=1)]
         if len(fwin) > max_flow_windows:  # a long recording: evenly spread windows are plenty
             fwin = fwin[np.unique(np.linspace(0, len(fwin) - 1, max_flow_windows).round().astype(int))]
-        self.flow = Windows(fwin, np.zeros(0), np.zeros(0))
-        seg_of = np.searchsorted([b for _a, b in data.segments()], fwin[:, 0], side="right") if len(fwin) \
-            else np.zeros(0, int)
-        self._seg_windows = [(int(np.searchsorted(seg_of, i)), int(np.searchsorted(seg_of, i, side="right")))
-                             for i in range(len(data.segments()))]
-        if len(self.flow.idx):
-            self.flow.t_start_s = t[self.flow.idx[:, 0]]
-            self.flow.t_end_s = t[self.flow.idx[:, -1]]
         fw = np.concatenate(force_w) if force_w else np.zeros((0, 2), int)
         if len(fw) and np.any(long_gap):
             cg = np.concatenate([[0], np.cumsum(long_gap)])
@@ -282,21 +264,10 @@ class FlowProblem:
             self._first[a] = True
             self._seg_t0[a:b] = t[a]
             self._seg_last[a:b] = b - 1
-        # windowed constants of the flow channel
-        W = self.flow.idx
-        self._Phiw = self.Phi[:, W]
-        #: per window, the increments into frames whose flow was lost (bridged), and the recorded
-        #: increments either side of each that the flow residual takes its step from there
-        #: (``flow_residual``)
-        self._lost = _bridge_plan(~data.flow_rec[W][:, 1:] if len(W) else np.zeros((0, self.L1 - 1), dtype=bool))
-        self._Rw = self.R[:, W]  # constant gathers of every flow-residual evaluation
-        self._RAw = self.RA[:, W]
-        self._rot_cache = _Cache()
-        self._trans_cache = _Cache()
+        self._set_flow_windows(fwin)
         self._vel_cache = _Cache(4)
         self._geo_cache = _Cache()
         self._phi_cache = _Cache(3)
-        self._shift_cache = _Cache(4)
         self._dPhi = np.zeros_like(self.Phi)
         for a, b in data.segments():
             if b - a > 1:
@@ -308,10 +279,40 @@ class FlowProblem:
         self._span = t[self._k1] - t[self._k0]
         self._den0 = t[self._k0 + h] - t[self._k0 - h]
         self._den1 = t[self._k1 + h] - t[self._k1 - h]
-        self._dv_tilt = self._bavg(self.D, self._k1, self._den1) - self._bavg(self.D, self._k0, self._den0)
+        self._dv_tilt = self._window_means(self.D)
+        self._rot_basis: np.ndarray | None = None  # ``_odometry_changes`` of R and RA (on first use)
+        self._phi_basis_cache = _Cache(4)
+        self._native_args: dict[str, np.ndarray] | None = None  # the compiled kernels' (``_native``)
         #: constant residual offsets set by ``anchor`` (None: this problem's own nominal residual)
         self._flow_offset: np.ndarray | None = None
         self._force_offset: np.ndarray | None = None
+
+    def _set_flow_windows(self, W: np.ndarray) -> None:
+        """The flow channels' windows W (n_windows, L1) of frame indices, and their constants."""
+        t = self.t
+        self.flow = Windows(W, t[W[:, 0]] if len(W) else np.zeros(0), t[W[:, -1]] if len(W) else np.zeros(0))
+        seg_of = np.searchsorted([b for _a, b in self.data.segments()], W[:, 0], side="right") if len(W) \
+            else np.zeros(0, int)
+        self._seg_windows = [(int(np.searchsorted(seg_of, i)), int(np.searchsorted(seg_of, i, side="right")))
+                             for i in range(len(self.data.segments()))]
+        self._Phiw = self.Phi[:, W]
+        #: per window, the increments into frames whose flow was lost (bridged), and the recorded
+        #: increments either side of each that the flow residual takes its step from there
+        #: (``flow_residual``)
+        self._lost = _bridge_plan(~self.data.flow_rec[W][:, 1:] if len(W) else np.zeros((0, self.L1 - 1), dtype=bool))
+        self._Rw = self.R[:, W]  # constant gathers of every flow-residual evaluation
+        self._RAw = self.RA[:, W]
+        self._rot_cache = _Cache()
+        self._trans_cache = _Cache()
+        self._shift_cache = _Cache(4)
+
+    def keep_flow_windows(self, keep: np.ndarray) -> None:
+        """Leave the flow windows where not ``keep`` ((n_windows,) bool) out of the flow channels
+        (e.g. ``groups.quiet_windows``'s): the kept windows' residuals are as before, and no
+        evaluation spends time on the others. Before ``anchor``."""
+        if self._flow_offset is not None:
+            raise ValueError("keep_flow_windows: an anchored problem's windows are fixed")
+        self._set_flow_windows(self.flow.idx[keep])
 
     def anchor(self, base: FlowProblem, p_anchor: np.ndarray | None = None) -> None:
         """Take the residual at ``p_anchor`` (the nominal when None) from ``base`` (the same flight,
@@ -364,6 +365,17 @@ class FlowProblem:
         ends."""
         if delay_s == 0.0:
             return y[..., np.arange(len(self.t)) if idx is None else idx]
+        if idx is None and y.ndim == 2 and len(self.t) >= 2:
+            lib = native.kernels()
+            if lib is not None:  # the compiled copy (``fh_hermite_shift``, tests/test_native.py)
+                a = self._native()
+                y = np.ascontiguousarray(y, dtype=float)
+                dy = np.ascontiguousarray(dy, dtype=float)
+                out = np.empty_like(y)
+                lib.fh_hermite_shift(a["t"].ctypes.data, len(self.t), a["seg_t0"].ctypes.data,
+                                     a["seg_last"].ctypes.data, y.ctypes.data, dy.ctypes.data, y.shape[0],
+                                     float(delay_s), out.ctypes.data)
+                return out
         # the frames and weights depend on the delay and the frames only, not on y: kept for
         # the next signal shifted alike (a translation shifts two, a Jacobian repeats delays)
         if idx is None or idx is self.flow.idx:
@@ -445,11 +457,15 @@ class FlowProblem:
         key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8], p[10]))
         return self._vel_cache.get(key, lambda: self._flow_velocity_uncached(p))
 
+    def _phi_at(self, delay_s: float) -> np.ndarray:
+        """The recorded scene angle at t + delay (2, n): cubic Hermite with the frames' mean rates."""
+        if delay_s == 0.0:
+            return self.Phi
+        return self._phi_cache.get((float(delay_s),), lambda: self._shifted(self.Phi, self._dPhi, -delay_s))
+
     def _flow_velocity_uncached(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         kx, ky, yaw, delay, offset = p[0], p[1], p[2], p[3], p[4]
-        phi = self.Phi
-        if delay != 0.0:  # the flow at t + delay: cubic Hermite with the frames' mean rates
-            phi = self._phi_cache.get((float(delay),), lambda: self._shifted(self.Phi, self._dPhi, -delay))
+        phi = self._phi_at(delay)
         sx, sy = kx * phi[0], ky * phi[1]
         c, s = math.cos(yaw), math.sin(yaw)
         bx = c * sx - s * sy
@@ -461,6 +477,64 @@ class FlowProblem:
         X[:, 1:] = np.cumsum(inc, axis=1)
         return X, Y
 
+    def _odometry_changes(self, S: np.ndarray) -> np.ndarray:
+        """The force channel's pieces of the odometry that the scene-angle signals S (k, n) alone
+        give, per unit of range and per metre of range offset: (2 [dv, dx], 2 [A, 1], k, n_windows).
+        The odometry X = cumsum((A_mid - offset) diff(Y)) (``flow_velocity``) is linear in Y and in
+        the offset, and Y in the rotation and the sensor's rotated, scaled flow, so are the windows'
+        changes of X and of its integral: ``_odometry_window_changes`` combines these for any
+        geometry without touching a frame."""
+        lib = native.kernels()
+        if lib is not None and S.ndim == 2 and S.shape[1] >= 2 and len(self._k0):
+            # the compiled copy (``fh_odometry_changes``, tests/test_native.py holds the two equal):
+            # no whole-flight arrays
+            a = self._native()
+            S = np.ascontiguousarray(S, dtype=float)
+            out = np.empty((2, 2, S.shape[0], len(self._k0)))
+            scratch = np.empty(2 * S.shape[1])
+            lib.fh_odometry_changes(S.ctypes.data, S.shape[0], S.shape[1], a["first"].ctypes.data,
+                                    a["amid"].ctypes.data, a["dt"].ctypes.data, a["k0"].ctypes.data,
+                                    a["k1"].ctypes.data, a["den0"].ctypes.data, a["den1"].ctypes.data, len(self._k0),
+                                    self.h, scratch.ctypes.data, out.ctypes.data)
+            return out
+        d = np.diff(S, axis=-1)
+        d[..., self._first[1:]] = 0.0  # no increment across a gap
+        out = np.empty((2, 2) + S.shape[:-1] + (len(self._k0),))
+        for j, inc in enumerate((self._Amid * d, d)):
+            X = np.zeros(S.shape)
+            X[..., 1:] = np.cumsum(inc, axis=-1)
+            out[0, j] = self._window_means(X)
+            out[1, j] = self._window_means(self._integral(X))
+        return out
+
+    def _native(self) -> dict[str, np.ndarray]:
+        """This problem's constant arrays as the compiled kernels take them (made once)."""
+        if self._native_args is None:
+            c = np.ascontiguousarray
+            self._native_args = {"t": c(self.t, dtype=float), "seg_t0": c(self._seg_t0, dtype=float),
+                                 "seg_last": c(self._seg_last, dtype=np.int64), "first": c(self._first, dtype=np.uint8),
+                                 "amid": c(self._Amid, dtype=float), "dt": c(self._dt, dtype=float),
+                                 "k0": c(self._k0, dtype=np.int64), "k1": c(self._k1, dtype=np.int64),
+                                 "den0": c(self._den0, dtype=float), "den1": c(self._den1, dtype=float)}
+        return self._native_args
+
+    def _odometry_window_changes(self, p: np.ndarray) -> np.ndarray:
+        """``dv`` and ``dx`` of ``force_parts`` under p's sensor geometry: the windows' change of the
+        odometry ``flow_velocity`` gives (m/s) and of its integral (m), (2 [dv, dx], 2 axes, n_windows),
+        combined from ``_odometry_changes`` of R, RA (once) and the scene angle (per delay)."""
+        kx, ky, yaw, delay, offset, gain, rz = p[0], p[1], p[2], p[3], p[4], p[8], p[10]
+        if self._rot_basis is None:
+            self._rot_basis = self._odometry_changes(np.concatenate([self.R, self.RA]))
+        rb = self._rot_basis
+        fb = self._phi_basis_cache.get((float(delay),), lambda: self._odometry_changes(self._phi_at(delay)))
+        m = rb[:, 0] - offset * rb[:, 1]  # (2, 4 [R_x, R_y, RA_x, RA_y], n_windows)
+        f = fb[:, 0] - offset * fb[:, 1]  # (2, 2 [phi_x, phi_y], n_windows)
+        c, s = math.cos(yaw), math.sin(yaw)
+        # Y_x = gain R_x + rz RA_x - (c kx phi_x - s ky phi_y), Y_y = gain R_y + rz RA_y - (s kx phi_x + c ky phi_y)
+        x = gain * m[:, 0] + rz * m[:, 2] - (c * kx) * f[:, 0] + (s * ky) * f[:, 1]
+        y = gain * m[:, 1] + rz * m[:, 3] - (s * kx) * f[:, 0] - (c * ky) * f[:, 1]
+        return np.stack([x, y], axis=1)
+
     def force_parts(self, p: np.ndarray, start_s: float = math.nan, end_s: float = math.nan, *,
                     with_dq: bool = True) -> dict[str, np.ndarray]:
         """Boundary-averaged pieces of the force balance (each (2, n_windows), m/s per window):
@@ -468,7 +542,7 @@ class FlowProblem:
         averaged displacement change (drag regressor, m), ``dq`` the form-drag regressor (absent
         when ``with_dq`` is False: the costliest piece, and a residual without form drag does not
         need it), ``dt1`` the wind regressor (s)."""
-        geo = self._geometry_parts(p)
+        dv, dx = self._odometry_window_changes(p)
         k0, k1, d0, d1 = self._k0, self._k1, self._den0, self._den1
         h = self.h
         t = self.t
@@ -477,23 +551,31 @@ class FlowProblem:
             return (ramp_integral(t[k + h], start_s, end_s) - ramp_integral(t[k - h], start_s, end_s)) / den
 
         parts = {
-            "dv": geo.dv,
+            "dv": dv,
             "dv_tilt": self._dv_tilt,
-            "dx": geo.dx,
+            "dx": dx,
             "dt1": np.broadcast_to(ravg(k1, d1) - ravg(k0, d0), (2, len(k0))).copy(),
             "span_s": self._span,
         }
         if with_dq:
-            parts["dq"] = geo.dq()
+            key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8], p[10]))
+            parts["dq"] = self._geo_cache.get(key, lambda: _FormDrag(self, self.flow_velocity(p)[0])).dq()
         return parts
-
-    def _geometry_parts(self, p: np.ndarray) -> _Geometry:
-        key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8], p[10]))
-        return self._geo_cache.get(key, lambda: _Geometry(self, self.flow_velocity(p)[0]))
 
     def _bavg(self, Z: np.ndarray, k: np.ndarray, den: np.ndarray) -> np.ndarray:
         """Mean of the derivative of Z over [t_k-h, t_k+h]: (Z(k+h) - Z(k-h)) / span."""
         return (Z[..., k + self.h] - Z[..., k - self.h]) / den
+
+    def _window_means(self, Z: np.ndarray) -> np.ndarray:
+        """Each force window's change of Z's boundary means: _bavg at its end minus at its start."""
+        return self._bavg(Z, self._k1, self._den1) - self._bavg(Z, self._k0, self._den0)
+
+    def _integral(self, Z: np.ndarray) -> np.ndarray:
+        """Trapezoidal integral of Z over time along the last axis, through the gaps between
+        segments (every use takes differences within one segment)."""
+        out = np.zeros_like(Z)
+        out[..., 1:] = np.cumsum(0.5 * (Z[..., 1:] + Z[..., :-1]) * self._dt, axis=-1)
+        return out
 
     def force_residual(self, p: np.ndarray, start_s: float = math.nan, end_s: float = math.nan) -> np.ndarray:
         """``force_x``, ``force_y`` (N), shape (2, n_windows): the mean force over each window the

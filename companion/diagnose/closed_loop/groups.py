@@ -669,23 +669,22 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
     if p_anchor is not None:  # only the geometry: the forces do not enter the regressors
         geo = [IDX[k] for k in GEOMETRY]
         p_a[geo] = p_anchor[geo]
+    keep = ~quiet_windows(base, data.flow_resolution_rad * math.sqrt(12.0))
+    if len(base.flow.idx) and not keep.all():
+        data.notes.append(f"{int((~keep).sum())} of {len(keep)} flow windows left out of the flow channels: "
+                          f"under {QUIET_ROTATION_COUNTS:g} count of rotation on both axes, what rotation there is "
+                          f"is the loop's answer to the flow's own rounding")
+        base.keep_flow_windows(keep)
     fp = FlowProblem(data, rotation_angles=regressor, scene_angle=regressor_scene_angle(base, regressor, p_a), **kw)
+    if not keep.all():
+        fp.keep_flow_windows(keep)
     fp.anchor(base, p_a)
     data.notes.append(f"the flow effects' regressors: rotation from {what}, velocity from the tilt above "
                       f"{VELOCITY_CROSSOVER_HZ:g} Hz and the flow below (their noise is not the residual's)")
     state = FlowGroupState(fp)
     e0 = base.flow_residual(p_a)
-    keep = ~quiet_windows(base, data.flow_resolution_rad * math.sqrt(12.0))
-    if len(fp.flow.idx) and not keep.all():
-        data.notes.append(f"{int((~keep).sum())} of {len(keep)} flow windows left out of the flow channels: "
-                          f"under {QUIET_ROTATION_COUNTS:g} count of rotation on both axes, what rotation there is "
-                          f"is the loop's answer to the flow's own rounding")
-
-    def kept(f: Callable[[np.ndarray], np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
-        return lambda r: f(r)[keep]
-
-    whiten = state.whiten = [kept(ar_whitener(e0[0][keep])), kept(ar_whitener(e0[1][keep]))]
-    state.n_flow_rows = int(keep.sum()) * max(fp.flow.idx.shape[1] - WHITEN_ORDER, 0)
+    whiten = state.whiten = [ar_whitener(e0[0]), ar_whitener(e0[1])]
+    state.n_flow_rows = fp.flow.idx.shape[0] * max(fp.flow.idx.shape[1] - WHITEN_ORDER, 0)
 
     def residuals(p: np.ndarray) -> list[np.ndarray]:
         s, e = state.start_end
@@ -693,7 +692,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
         r = fp.force_residual(p, s, e)
         return [whiten[0](f[0]).ravel(), whiten[1](f[1]).ravel(), r[0], r[1]]
 
-    tf = data.t_s[fp.flow.idx[keep, WHITEN_ORDER:]].ravel() if len(fp.flow.idx) else np.zeros(0)
+    tf = data.t_s[fp.flow.idx[:, WHITEN_ORDER:]].ravel() if len(fp.flow.idx) else np.zeros(0)
     tw = 0.5 * (fp.force.t_start_s + fp.force.t_end_s)
     a_min = float(np.nanmin(data.range_m))
     # a rangefinder offset of half the lowest height is far beyond any mounting error: a fit that
