@@ -118,6 +118,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.fh_free_rate.argtypes = (p, i64, p, i64, p, p, i64, p, ctypes.c_double, p)
     lib.fh_filtfilt2_segments.restype = None
     lib.fh_filtfilt2_segments.argtypes = (p, p, p, p, p, p, i64, i64, p, p)
+    lib.fh_form_drag.restype = None
+    lib.fh_form_drag.argtypes = (p, i64, p, p, p, p, i64, p, p, p, p, i64, i64, p, p)
     lib.fh_csv_rows.restype = i64
     lib.fh_csv_rows.argtypes = (i64, i32, p, p, p, p, p, p, i64, i64)
 

@@ -470,3 +470,34 @@ def test_free_rate_equals_numpy(monkeypatch, omega_p, zeta):
         monkeypatch.delenv("FLOWHOLD_NATIVE")
         np.testing.assert_array_equal(got, want)
         assert np.nanmax(np.abs(want - e)) > 1e-6  # start rates were fitted out
+
+
+def test_form_drag_regressor_equals_numpy(monkeypatch):
+    """The force channel's form-drag regressor (``fh_form_drag``) against numpy's
+    ``_FormDrag._form_drag_regressor``, to the bit: segments long and too short for the rate's
+    span (rate 0 there), jittered frame times, an odometry of several geometries."""
+    from companion.diagnose.closed_loop.channels import FlightData
+    from companion.diagnose.closed_loop.flowmodel import IDX, NOMINAL, FlowProblem, _FormDrag
+
+    rng = np.random.default_rng(13)
+    n = 2000
+    t = np.cumsum(rng.uniform(0.019, 0.021, n))
+    seg = np.repeat([0, 1, 2, 3], [700, 9, 891, 400])  # the second too short for +-h frames
+    z = np.zeros(n)
+    data = FlightData(path="synthetic", profile="paper", profile_reason="test", frame_s=0.02, command_source="test",
+                      t_s=t, dt_s=np.r_[0.02, np.diff(t)], seg=seg, dphi_x_rad=rng.normal(0, 2e-3, n),
+                      dphi_y_rad=rng.normal(0, 2e-3, n), gyro_x_rad_s=z, gyro_y_rad_s=z,
+                      range_m=1.2 + 0.3 * np.sin(t), roll_rad=0.05 * np.sin(2 * t), pitch_rad=0.04 * np.cos(3 * t),
+                      yaw_rad=z, roll_cmd_rad=z, pitch_cmd_rad=z, vx_set_m_s=z * np.nan, vy_set_m_s=z * np.nan,
+                      truth_vx_m_s=z * np.nan, truth_vy_m_s=z * np.nan)
+    fp = FlowProblem(data, mass_kg=1.0, gravity_m_s2=9.81)
+    for scale, delay in ((1.0, 0.0), (1.3, 0.017)):
+        p = NOMINAL.copy()
+        p[IDX["scale_x"]], p[IDX["delay"]] = scale, delay
+        X = fp.flow_velocity(p)[0]
+        got = _FormDrag(fp, X).dq()
+        monkeypatch.setenv("FLOWHOLD_NATIVE", "0")
+        want = _FormDrag(fp, X).dq()
+        monkeypatch.delenv("FLOWHOLD_NATIVE")
+        np.testing.assert_array_equal(got, want)
+        assert np.all(np.isfinite(want)) and np.abs(want).max() > 0

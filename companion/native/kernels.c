@@ -843,3 +843,44 @@ void fh_filtfilt2_segments(const double *b, const double *a, const double *zi, c
         for (int64_t i = 0; i < len; i++) out[s0 + i] = y2[m - 1 - (pad + i)];
     }
 }
+
+/* ------------------------------------------------------------------------------------------- */
+/* The force channel's form-drag regressor (companion/diagnose/closed_loop/flowmodel.py,
+ * _FormDrag._form_drag_regressor), term for term, for both rows of the odometry X (2, n): the
+ * odometry's rate v over +-h frames within each segment [starts[s], stops[s]) longer than 2 h + 1
+ * (clipped at its ends; 0 in shorter segments), q = v |v|, integrated twice (trapezoids through
+ * the gaps, dt: n - 1), and per force window [k0, k1] the change of the boundary means
+ * (Z[k + h] - Z[k - h]) / den. out (2, nw); scratch: 2 n doubles. */
+void fh_form_drag(const double *X, int64_t n, const double *t, const double *dt, const int64_t *starts,
+                  const int64_t *stops, int64_t nseg, const int64_t *k0, const int64_t *k1, const double *den0,
+                  const double *den1, int64_t nw, int64_t h, double *scratch, double *out) {
+    double *v = scratch, *IQ = scratch + n;
+    for (int i = 0; i < 2; i++) {
+        const double *x = X + i * n;
+        for (int64_t k = 0; k < n; k++) v[k] = 0.0;
+        for (int64_t s = 0; s < nseg; s++) {
+            int64_t a = starts[s], b = stops[s];
+            if (!(b - a > 2 * h + 1)) continue;
+            for (int64_t k = a; k < b; k++) {
+                int64_t lo = k - h, hi = k + h;
+                if (lo < a) lo = a;
+                if (hi > b - 1) hi = b - 1;
+                v[k] = (x[hi] - x[lo]) / (t[hi] - t[lo]);
+            }
+        }
+        /* q = v |v|, Q its integral (running), IQ the integral of Q */
+        double Q = 0.0, qprev = v[0] * fabs(v[0]);
+        IQ[0] = 0.0;
+        for (int64_t k = 0; k + 1 < n; k++) {
+            double q = v[k + 1] * fabs(v[k + 1]);
+            double Qn = Q + (0.5 * (q + qprev)) * dt[k];
+            IQ[k + 1] = IQ[k] + (0.5 * (Qn + Q)) * dt[k];
+            Q = Qn;
+            qprev = q;
+        }
+        for (int64_t w = 0; w < nw; w++) {
+            int64_t a = k0[w], b = k1[w];
+            out[i * nw + w] = (IQ[b + h] - IQ[b - h]) / den1[w] - (IQ[a + h] - IQ[a - h]) / den0[w];
+        }
+    }
+}

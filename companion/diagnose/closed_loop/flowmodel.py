@@ -154,6 +154,18 @@ class _FormDrag:
 
     def _form_drag_regressor(self) -> np.ndarray:
         fp, X = self._fp, self._X
+        lib = native.kernels()
+        if lib is not None and X.shape == (2, len(fp.t)) and len(fp.t) >= 2 and len(fp._k0):
+            # the compiled copy (``fh_form_drag``, tests/test_native.py holds the two equal)
+            a = fp._native()
+            X = np.ascontiguousarray(X, dtype=float)
+            out = np.empty((2, len(fp._k0)))
+            scratch = np.empty(2 * X.shape[1])
+            lib.fh_form_drag(X.ctypes.data, X.shape[1], a["t"].ctypes.data, a["dt"].ctypes.data,
+                             a["seg_starts"].ctypes.data, a["seg_stops"].ctypes.data, len(a["seg_starts"]),
+                             a["k0"].ctypes.data, a["k1"].ctypes.data, a["den0"].ctypes.data, a["den1"].ctypes.data,
+                             len(fp._k0), fp.h, scratch.ctypes.data, out.ctypes.data)
+            return out
         # the form-drag regressor: integral of v |v|, v the odometry's change over +-h frames (the
         # boundary-averaging span): a frame-to-frame derivative of quantized odometry is a train of
         # spikes, and squared they would swamp the drag
@@ -516,6 +528,9 @@ class FlowProblem:
                                  "amid": c(self._Amid, dtype=float), "dt": c(self._dt, dtype=float),
                                  "k0": c(self._k0, dtype=np.int64), "k1": c(self._k1, dtype=np.int64),
                                  "den0": c(self._den0, dtype=float), "den1": c(self._den1, dtype=float)}
+            seg = np.array(self.data.segments(), dtype=np.int64).reshape(-1, 2)
+            self._native_args["seg_starts"] = c(seg[:, 0])
+            self._native_args["seg_stops"] = c(seg[:, 1])
         return self._native_args
 
     def _odometry_window_changes(self, p: np.ndarray) -> np.ndarray:
