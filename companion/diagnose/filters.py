@@ -233,28 +233,3 @@ def filtfilt_segments(b: np.ndarray, a: np.ndarray, x: np.ndarray, starts: np.nd
                           fill=0.0)
     out[plan.mid_src] = y2[plan.rev][plan.mid]
     return out
-    pad = 3 * max(len(a), len(b))
-    lens = stops - starts
-    if np.any(lens <= pad):
-        raise ValueError(f"filtfilt: the signal must be longer than {pad} samples")
-    ext_len = lens + 2 * pad
-    ext_start = np.concatenate([[0], np.cumsum(ext_len)[:-1]])
-    seg = np.repeat(np.arange(len(starts)), ext_len)
-    pos = np.arange(int(ext_len.sum())) - ext_start[seg]
-    left = pos < pad
-    right = pos >= pad + lens[seg]
-    mid = ~left & ~right
-    src = starts[seg] + pos - pad  # the stretch itself
-    src[left] = starts[seg[left]] + pad - pos[left]  # row[pad:0:-1]
-    src[right] = stops[seg[right]] - 2 - (pos[right] - pad - lens[seg[right]])  # row[-2:-(pad + 2):-1]
-    ext = x[src]
-    ext[left] = 2 * x[starts[seg[left]]] - ext[left]
-    ext[right] = 2 * x[stops[seg[right]] - 1] - ext[right]
-    zi = lfilter_zi(b, a)
-    ext_stop = ext_start + ext_len
-    y = lfilter_segments(b, a, ext, ext_start, ext_stop, zi[None, :] * ext[ext_start][:, None], fill=0.0)
-    rev = ext_start[seg] + ext_len[seg] - 1 - pos  # each stretch reversed in place
-    yr = y[rev]
-    y2 = lfilter_segments(b, a, yr, ext_start, ext_stop, zi[None, :] * yr[ext_start][:, None], fill=0.0)
-    out[src[mid]] = y2[rev][mid]
-    return out
