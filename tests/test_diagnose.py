@@ -560,6 +560,44 @@ def test_selector_names_an_effect_only_when_it_earns_it():
     assert chosen0 == [] and not ev0["slope"].significant
 
 
+@pytest.mark.parametrize("batch_values", [50, 10**9])
+def test_the_selection_statistics_are_the_sums_per_block(monkeypatch, batch_values):
+    """``Selector._stats``: per (fold, channel) J'J, J'r, r'r and per time cluster J'J, J'r are the
+    plain sums over each cross-validation block's rows (folds = block mod K, clusters = block //
+    per_cluster), whatever batch of blocks the outer products are formed in."""
+    from companion.diagnose.closed_loop import select as sel_mod
+
+    monkeypatch.setattr(sel_mod, "STATS_BATCH_VALUES", batch_values)
+    rng = np.random.default_rng(2)
+    t1 = np.sort(rng.uniform(0, 300, 900))
+    t2 = np.sort(rng.uniform(0, 300, 400))
+    x1, x2 = rng.normal(size=len(t1)), rng.normal(size=len(t2))
+    g = Group(name="two", params=("a", "b", "c"), nominal=np.zeros(3), steps=np.full(3, 1e-3),
+              lower=np.full(3, -10.0), upper=np.full(3, 10.0), channels=("y1", "y2"), units=("1", "1"),
+              floors=(1e-9, 1e-9),
+              residuals=lambda p: [x1 - p[0] * np.sin(t1) - p[1] * t1 / 300,
+                                   x2 - p[2] * np.cos(t2) - p[1] * x2 ** 2],
+              row_times=[t1, t2], candidates=[Candidate("ab", ("a", "b")), Candidate("c", ("c",))], linear=("a", "b", "c"))
+    s = Selector(g, Settings(), 0.0)
+    G, gv, ss = s._stats()
+    K, P = s.K, s.P
+    G_ref, gv_ref, ss_ref = np.zeros((K, 2, P, P)), np.zeros((K, 2, P)), np.zeros((K, 2))
+    Gb_ref, gvb_ref = np.zeros((s.n_blocks, P, P)), np.zeros((s.n_blocks, P))
+    for c in range(2):
+        J, r, blk = s.J[c], s.r_lin[c], s.cvblocks[c]
+        for b in np.unique(blk):
+            m = blk == b
+            k, cl = b % K, b // s.per_cluster
+            G_ref[k, c] += J[m].T @ J[m]
+            gv_ref[k, c] += J[m].T @ r[m]
+            ss_ref[k, c] += r[m] @ r[m]
+            Gb_ref[cl] += J[m].T @ J[m]
+            gvb_ref[cl] += J[m].T @ r[m]
+    for got, want in ((G, G_ref), (gv, gv_ref), (ss, ss_ref), (s.Gb, Gb_ref), (s.gvb, gvb_ref)):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+    assert len(np.unique(s.cvblocks[0])) > 10 and np.abs(G_ref).max() > 0
+
+
 # ---------------------------------------------------------------------------------------------
 # the command line
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import special
@@ -273,6 +273,11 @@ def robust_std(x: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(x - np.median(x))))
 
 
+#: ``Selector._stats`` forms the rows' outer products a batch of blocks at a time, at most this
+#: many values at once (32 MB)
+STATS_BATCH_VALUES = 4_000_000
+
+
 class Selector:
     """Fit and choose among a group's candidate effects (see the module docstring)."""
 
@@ -421,6 +426,7 @@ class Selector:
 
     def _linearise(self, p: np.ndarray) -> None:
         """Jacobian and per (fold, channel) sufficient statistics of the linearisation at p."""
+        self._linear_scores: dict[tuple[frozenset[str], bool], ModelScore] = {}
         self.p_lin = p.copy()
         others = [i for i in range(self.P) if i not in self.widx]
         Jo = self.jacobian(p, others)
@@ -454,16 +460,25 @@ class Selector:
             Jo, ro = J[order], r[order]
             gsum = np.add.reduceat(Jo * ro[:, None], starts, axis=0)
             rsum = np.add.reduceat(ro * ro, starts)
-            for i, (a, b) in enumerate(zip(starts, stops, strict=True)):
-                blk_id = int(bs[a])
-                Ga = Jo[a:b].T @ Jo[a:b]
-                k = blk_id % K
-                G[k, c] += Ga
-                gv[k, c] += gsum[i]
-                ss[k, c] += rsum[i]
-                cl = blk_id // self.per_cluster
-                self.Gb[cl] += Ga
-                self.gvb[cl] += gsum[i]
+            # each block's J'J: the rows' outer products summed per block, a batch of blocks at a
+            # time (at most STATS_BATCH_VALUES values of outer products at once)
+            Gblk = np.empty((len(starts), P, P))
+            limit = max(1, STATS_BATCH_VALUES // (P * P))
+            i = 0
+            while i < len(starts):
+                j = max(i + 1, int(np.searchsorted(stops, starts[i] + limit, side="right")))
+                a, b = int(starts[i]), int(stops[j - 1])
+                rows = Jo[a:b]
+                Gblk[i:j] = np.add.reduceat(rows[:, :, None] * rows[:, None, :], starts[i:j] - a, axis=0)
+                i = j
+            ids = bs[starts]
+            fold = ids % K
+            np.add.at(G[:, c], fold, Gblk)
+            np.add.at(gv[:, c], fold, gsum)
+            np.add.at(ss[:, c], fold, rsum)
+            cl = ids // self.per_cluster
+            np.add.at(self.Gb, cl, Gblk)
+            np.add.at(self.gvb, cl, gsum)
         return G, gv, ss
 
     def _gauss_newton(self, p: np.ndarray, free: Sequence[int], train: list[np.ndarray] | None, *,
@@ -523,9 +538,21 @@ class Selector:
         ``relocate`` the searched part (wind window) is the one found on each training set alone
         (used when the searched effect itself is judged); otherwise the one found on all data."""
         free = self._free(effects)
+        searched = relocate and bool(self.widx) and any(i in free for i in self.widx)
+        # a pure function of the linearisation: the same effects are scored again and again (a
+        # pair of one step is the single of the next, the backward check rescored), so the
+        # scores are kept until the next linearisation; each caller gets its own copy
+        key = (frozenset(effects), searched)
+        if key not in self._linear_scores:
+            self._linear_scores[key] = self._score_linear(effects, free, searched)
+        m = self._linear_scores[key]
+        return replace(m, effects=tuple(effects), free=list(m.free), p=m.p.copy(), p_folds=m.p_folds.copy(),
+                       cov=m.cov.copy(), fold_sse=m.fold_sse.copy(), heldout_ss=m.heldout_ss.copy(),
+                       state=dict(m.state))
+
+    def _score_linear(self, effects: Sequence[str], free: list[int], searched: bool) -> ModelScore:
         K = self.K
         base = (self.G, self.gv, self.ss)
-        searched = relocate and bool(self.widx) and any(i in free for i in self.widx)
         p_folds = np.zeros((K, self.P))
         fold_sse = np.zeros(K)
         ho = np.zeros(len(self.g.channels))
