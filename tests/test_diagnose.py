@@ -577,7 +577,8 @@ def test_the_selection_statistics_are_the_sums_per_block(monkeypatch, batch_valu
               floors=(1e-9, 1e-9),
               residuals=lambda p: [x1 - p[0] * np.sin(t1) - p[1] * t1 / 300,
                                    x2 - p[2] * np.cos(t2) - p[1] * x2 ** 2],
-              row_times=[t1, t2], candidates=[Candidate("ab", ("a", "b")), Candidate("c", ("c",))], linear=("a", "b", "c"))
+              row_times=[t1, t2], candidates=[Candidate("ab", ("a", "b")), Candidate("c", ("c",))],
+              linear=("a", "b", "c"))
     s = Selector(g, Settings(), 0.0)
     G, gv, ss = s._stats()
     K, P = s.K, s.P
