@@ -157,14 +157,14 @@ class _FormDrag:
         lib = native.kernels()
         if lib is not None and X.shape == (2, len(fp.t)) and len(fp.t) >= 2 and len(fp._k0):
             # the compiled copy (``fh_form_drag``, tests/test_native.py holds the two equal)
-            a = fp._native()
+            args = fp._native()
             X = np.ascontiguousarray(X, dtype=float)
             out = np.empty((2, len(fp._k0)))
             scratch = np.empty(2 * X.shape[1])
-            lib.fh_form_drag(X.ctypes.data, X.shape[1], a["t"].ctypes.data, a["dt"].ctypes.data,
-                             a["seg_starts"].ctypes.data, a["seg_stops"].ctypes.data, len(a["seg_starts"]),
-                             a["k0"].ctypes.data, a["k1"].ctypes.data, a["den0"].ctypes.data, a["den1"].ctypes.data,
-                             len(fp._k0), fp.h, scratch.ctypes.data, out.ctypes.data)
+            lib.fh_form_drag(X.ctypes.data, X.shape[1], args["t"].ctypes.data, args["dt"].ctypes.data,
+                             args["seg_starts"].ctypes.data, args["seg_stops"].ctypes.data, len(args["seg_starts"]),
+                             args["k0"].ctypes.data, args["k1"].ctypes.data, args["den0"].ctypes.data,
+                             args["den1"].ctypes.data, len(fp._k0), fp.h, scratch.ctypes.data, out.ctypes.data)
             return out
         # the form-drag regressor: integral of v |v|, v the odometry's change over +-h frames (the
         # boundary-averaging span): a frame-to-frame derivative of quantized odometry is a train of
