@@ -320,8 +320,9 @@ class FlowProblem:
 
     def keep_flow_windows(self, keep: np.ndarray) -> None:
         """Leave the flow windows where not ``keep`` ((n_windows,) bool) out of the flow channels
-        (e.g. ``groups.quiet_windows``'s): the kept windows' residuals are as before, and no
-        evaluation spends time on the others. Before ``anchor``."""
+        (e.g. ``groups.quiet_windows``'s): the kept windows' residuals are as before (to the last
+        bits of a matrix product over fewer rows), and no evaluation spends time on the others.
+        Before ``anchor``."""
         if self._flow_offset is not None:
             raise ValueError("keep_flow_windows: an anchored problem's windows are fixed")
         self._set_flow_windows(self.flow.idx[keep])

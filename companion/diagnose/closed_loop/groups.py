@@ -669,11 +669,9 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
     if p_anchor is not None:  # only the geometry: the forces do not enter the regressors
         geo = [IDX[k] for k in GEOMETRY]
         p_a[geo] = p_anchor[geo]
+    # quiet windows (``quiet_windows``) are left out of both problems, not evaluated and dropped
     keep = ~quiet_windows(base, data.flow_resolution_rad * math.sqrt(12.0))
-    if len(base.flow.idx) and not keep.all():
-        data.notes.append(f"{int((~keep).sum())} of {len(keep)} flow windows left out of the flow channels: "
-                          f"under {QUIET_ROTATION_COUNTS:g} count of rotation on both axes, what rotation there is "
-                          f"is the loop's answer to the flow's own rounding")
+    if not keep.all():
         base.keep_flow_windows(keep)
     fp = FlowProblem(data, rotation_angles=regressor, scene_angle=regressor_scene_angle(base, regressor, p_a), **kw)
     if not keep.all():
@@ -681,6 +679,10 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
     fp.anchor(base, p_a)
     data.notes.append(f"the flow effects' regressors: rotation from {what}, velocity from the tilt above "
                       f"{VELOCITY_CROSSOVER_HZ:g} Hz and the flow below (their noise is not the residual's)")
+    if len(keep) and not keep.all():
+        data.notes.append(f"{int((~keep).sum())} of {len(keep)} flow windows left out of the flow channels: "
+                          f"under {QUIET_ROTATION_COUNTS:g} count of rotation on both axes, what rotation there is "
+                          f"is the loop's answer to the flow's own rounding")
     state = FlowGroupState(fp)
     e0 = base.flow_residual(p_a)
     whiten = state.whiten = [ar_whitener(e0[0]), ar_whitener(e0[1])]
