@@ -148,12 +148,12 @@ class AttitudeProblem:
             else:
                 k = min(a + 1, b - 1)
                 rate0.append((self.y[:, k] - self.y[:, a]) / max(t[k] - t[a], 1e-6))
-        #: each segment's starting (roll, pitch) rate, (nseg, 2), and its (start, stop), (nseg, 2)
+        #: each segment's starting (roll, pitch) rate, (nseg, 2), and its first and stop frame
         self.rate0 = np.array(rate0, dtype=float).reshape(-1, 2)
-        self._bounds = np.array(self.segments, dtype=np.int64).reshape(-1, 2)
+        bounds = np.array(self.segments, dtype=np.int64).reshape(-1, 2)
+        self._starts = np.ascontiguousarray(bounds[:, 0])
+        self._stops = np.ascontiguousarray(bounds[:, 1])
         self._free_cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        self._starts = np.ascontiguousarray(self._bounds[:, 0])
-        self._stops = np.ascontiguousarray(self._bounds[:, 1])
 
     def delayed_command(self, delay_s: float) -> np.ndarray:
         """The command shifted by ``delay_s`` (fractional frames: frame-averaged), per segment of
@@ -181,7 +181,7 @@ class AttitudeProblem:
         out = np.full_like(self.y, np.nan)
         if not self.segments:
             return out
-        starts, stops = self._bounds[:, 0], self._bounds[:, 1]
+        starts, stops = self._starts, self._stops
         for i in (0, 1):
             # each segment's state at its start (angle, rate), taken back two frames under its
             # first command: the filter's initial conditions (all segments at once)
@@ -204,7 +204,7 @@ class AttitudeProblem:
         wrong start would read as a loop answering early or late, and a fit of the dynamics would
         shape the loop's decay to it (a single segment included)."""
         Ad, _Bd, b, a = discretise(omega_p, zeta, self.T)
-        starts, stops = self._bounds[:, 0], self._bounds[:, 1]
+        starts, stops = self._starts, self._stops
         L = int((stops - starts).max())
         # the free response decays at the slower pole's rate: past FREE_RESPONSE_DECAYS of its
         # time constants it is below 1e-19 of its start, so it is computed that far only (an
@@ -224,9 +224,9 @@ class AttitudeProblem:
             out = e.copy()
             h = np.ascontiguousarray(h, dtype=float)
             mask = None if fit_mask is None else np.ascontiguousarray(fit_mask, dtype=np.uint8)
-            lib.fh_free_rate(e.ctypes.data, e.shape[1], h.ctypes.data, L, self._starts.ctypes.data,
-                             self._stops.ctypes.data, len(self._starts), None if mask is None else mask.ctypes.data,
-                             FREE_FIT_MIN_SHARE, out.ctypes.data)
+            lib.fh_free_rate(e.ctypes.data, e.shape[1], h.ctypes.data, L, starts.ctypes.data, stops.ctypes.data,
+                             len(starts), None if mask is None else mask.ctypes.data, FREE_FIT_MIN_SHARE,
+                             out.ctypes.data)
             return out
         seg, k, frames = self._free_frames(L)
         hs = h[k]
@@ -249,7 +249,7 @@ class AttitudeProblem:
         """Every segment's first min(length, L) frames at once: (segment, frames since its start,
         frame), kept for the last few L (a fit asks for the same again and again)."""
         if L not in self._free_cache:
-            starts, stops = self._bounds[:, 0], self._bounds[:, 1]
+            starts, stops = self._starts, self._stops
             lens = np.minimum(stops - starts, L)  # the response is 0 past L
             seg = np.repeat(np.arange(len(starts)), lens)
             k = np.arange(int(lens.sum())) - np.repeat(np.cumsum(lens) - lens, lens)
