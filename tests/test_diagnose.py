@@ -484,6 +484,42 @@ def test_force_channel_odometry_equals_the_frame_by_frame_one(exact_flight):
             assert np.abs(ref).max() > 0.01
 
 
+def test_flow_residual_is_the_direct_sum_for_any_geometry(exact_flight):
+    """``flow_residual`` combines its projected pieces (scene angle, rotation per delay,
+    translation per offset and delay); it equals the residual formed whole and then bridged over
+    lost frames and projected, for any geometry, with frames lost."""
+    import dataclasses
+
+    rng = np.random.default_rng(9)
+    lost = rng.random(exact_flight.n) < 0.06
+    fd = dataclasses.replace(exact_flight, flow_rec=~lost)
+    fp = FlowProblem(fd, mass_kg=M, gravity_m_s2=G)
+    assert fp._lost is not None
+    w, j, jl, jr, al = fp._lost
+    for trial in range(5):
+        p = NOMINAL.copy()
+        if trial:
+            p[IDX["scale_x"]], p[IDX["scale_y"]] = rng.uniform(0.7, 1.4, 2)
+            p[IDX["yaw"]] = rng.uniform(-0.4, 0.4)
+            p[IDX["delay"]] = [0.012, -0.02, 0.0, 0.031][trial - 1]
+            p[IDX["offset"]] = rng.uniform(-0.2, 0.2)
+            p[IDX["gain"]] = rng.uniform(0.8, 1.2)
+            p[IDX["rz"]] = rng.uniform(-0.1, 0.1)
+        kx, ky, yaw, delay, offset = p[:5]
+        body = p[IDX["gain"]] * fp._rotation_at(delay) + p[IDX["rz"]] * fp._RAw - fp.model_translation(offset, delay)
+        c, s = math.cos(yaw), math.sin(yaw)
+        e = fp._Phiw.copy()
+        e[0] -= (c * body[0] + s * body[1]) / kx
+        e[1] -= (-s * body[0] + c * body[1]) / ky
+        inc = np.diff(e, axis=-1)
+        inc[:, w, j] = al * inc[:, w, jl] + (1.0 - al) * inc[:, w, jr]
+        e = np.concatenate([e[..., :1], e[..., :1] + np.cumsum(inc, axis=-1)], axis=-1) @ fp.P
+        got = fp.flow_residual(p)
+        # the same sums in another order: round-off of the scene angle's size (a few rad)
+        np.testing.assert_allclose(got, e, rtol=0, atol=1e-12 * np.abs(fp._Phiw).max())
+        assert np.abs(e).max() > 1e-4
+
+
 def test_flow_model_recovers_every_parameter_from_exact_data(exact_flight):
     """Least squares on both channels finds the planted sensor geometry, drag and wind."""
     fp = FlowProblem(exact_flight, mass_kg=M, gravity_m_s2=G)

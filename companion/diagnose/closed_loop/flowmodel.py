@@ -316,6 +316,11 @@ class FlowProblem:
         self._RAw = self.RA[:, W]
         self._rot_cache = _Cache()
         self._trans_cache = _Cache()
+        #: ``_projected`` pieces of the flow residual: the scene angle and the lever-arm rotation
+        #: (made once), the rotation per delay, the translation per (offset, delay)
+        self._proj_fixed: tuple[np.ndarray, np.ndarray] | None = None
+        self._proj_rot = _Cache(4)
+        self._proj_trans = _Cache()
         self._shift_cache = _Cache(4)
 
     def keep_flow_windows(self, keep: np.ndarray) -> None:
@@ -446,11 +451,25 @@ class FlowProblem:
         if len(W) == 0:
             return np.zeros((2, 0, self.L1))
         kx, ky, yaw, delay, offset = p[0], p[1], p[2], p[3], p[4]
-        body = p[8] * self._rotation_at(delay) + p[10] * self._RAw - self.model_translation(offset, delay)
+        # the residual is linear in the scene angle, the rotation and the translation, and so are
+        # the bridging of lost frames and the cubic's removal (``_projected``): each piece is
+        # projected once and combined for any geometry
+        if self._proj_fixed is None:
+            self._proj_fixed = (self._projected(self._Phiw), self._projected(self._RAw))
+        phi, ra = self._proj_fixed
+        rot = self._proj_rot.get((float(delay),), lambda: self._projected(self._rotation_at(delay)))
+        trans = self._proj_trans.get((float(offset), float(delay)),
+                                     lambda: self._projected(self.model_translation(offset, delay)))
+        body = p[8] * rot + p[10] * ra - trans
         c, s = math.cos(yaw), math.sin(yaw)
-        e = self._Phiw.copy()
-        e[0] -= (c * body[0] + s * body[1]) / kx
-        e[1] -= (-s * body[0] + c * body[1]) / ky
+        e = np.empty_like(phi)
+        e[0] = phi[0] - (c * body[0] + s * body[1]) / kx
+        e[1] = phi[1] - (-s * body[0] + c * body[1]) / ky
+        return e if self._flow_offset is None else e + self._flow_offset
+
+    def _projected(self, z: np.ndarray) -> np.ndarray:
+        """A flow-window signal z (2, n_windows, L1) as the flow residual takes it: its steps into
+        lost frames bridged, then the window's cubic removed. Both are linear in z."""
         if self._lost is not None:
             # a lost frame's increment was bridged from the attitude's rotation (no delay, no
             # gain, no scale) and the neighbours' translation: the extraction's guess, not a
@@ -458,11 +477,10 @@ class FlowProblem:
             # The residual's step over it is interpolated from the recorded steps either side
             # (the residual is smooth: the translation the cubic removes, and what the effects add)
             w, j, jl, jr, al = self._lost
-            inc = np.diff(e, axis=-1)
+            inc = np.diff(z, axis=-1)
             inc[:, w, j] = al * inc[:, w, jl] + (1.0 - al) * inc[:, w, jr]
-            e = np.concatenate([e[..., :1], e[..., :1] + np.cumsum(inc, axis=-1)], axis=-1)
-        e = e @ self.P
-        return e if self._flow_offset is None else e + self._flow_offset
+            z = np.concatenate([z[..., :1], z[..., :1] + np.cumsum(inc, axis=-1)], axis=-1)
+        return z @ self.P
 
     def flow_velocity(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Odometry from the flow under the model's sensor geometry: X (2, n) in m (per segment,
