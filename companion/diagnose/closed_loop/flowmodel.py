@@ -137,6 +137,12 @@ class _Cache:
         return value
 
 
+def _geometry_key(p: np.ndarray) -> tuple[float, ...]:
+    """The parameters the flow's odometry depends on (scale, turn, delay, range offset, rotation
+    gain, lever arm): the key of what is cached per sensor geometry."""
+    return tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8], p[10]))
+
+
 class _FormDrag:
     """The force channel's form-drag regressor ``dq`` for one sensor geometry, made on first use:
     it needs the odometry's rate over the whole flight, the costliest piece of the force channel,
@@ -278,7 +284,7 @@ class FlowProblem:
             self._seg_last[a:b] = b - 1
         self._set_flow_windows(fwin)
         self._vel_cache = _Cache(4)
-        self._geo_cache = _Cache()
+        self._form_drag_cache = _Cache()
         self._phi_cache = _Cache(3)
         self._dPhi = np.zeros_like(self.Phi)
         for a, b in data.segments():
@@ -314,7 +320,6 @@ class FlowProblem:
         self._lost = _bridge_plan(~self.data.flow_rec[W][:, 1:] if len(W) else np.zeros((0, self.L1 - 1), dtype=bool))
         self._Rw = self.R[:, W]  # constant gathers of every flow-residual evaluation
         self._RAw = self.RA[:, W]
-        self._rot_cache = _Cache()
         self._trans_cache = _Cache()
         #: ``_projected`` pieces of the flow residual: the scene angle and the lever-arm rotation
         #: (made once), the rotation per delay, the translation per (offset, delay)
@@ -366,9 +371,6 @@ class FlowProblem:
         recorded attitude of each segment (held at the segment's ends)."""
         if delay_s == 0.0:
             return self._Rw
-        return self._rot_cache.get((float(delay_s),), lambda: self._rotation_at_uncached(delay_s))
-
-    def _rotation_at_uncached(self, delay_s: float) -> np.ndarray:
         W = self.flow.idx
         out = np.empty((2,) + W.shape)
         for (a, b, sp), (w0, w1) in zip(self._splines, self._seg_windows, strict=True):
@@ -485,8 +487,7 @@ class FlowProblem:
     def flow_velocity(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Odometry from the flow under the model's sensor geometry: X (2, n) in m (per segment,
         from 0) and Y (2, n) the translational scene angle integral(v/A) in rad."""
-        key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8], p[10]))
-        return self._vel_cache.get(key, lambda: self._flow_velocity_uncached(p))
+        return self._vel_cache.get(_geometry_key(p), lambda: self._flow_velocity_uncached(p))
 
     def _phi_at(self, delay_s: float) -> np.ndarray:
         """The recorded scene angle at t + delay (2, n): cubic Hermite with the frames' mean rates."""
@@ -592,8 +593,8 @@ class FlowProblem:
             "span_s": self._span,
         }
         if with_dq:
-            key = tuple(float(x) for x in (p[0], p[1], p[2], p[3], p[4], p[8], p[10]))
-            parts["dq"] = self._geo_cache.get(key, lambda: _FormDrag(self, self.flow_velocity(p)[0])).dq()
+            parts["dq"] = self._form_drag_cache.get(_geometry_key(p),
+                                                    lambda: _FormDrag(self, self.flow_velocity(p)[0])).dq()
         return parts
 
     def _bavg(self, Z: np.ndarray, k: np.ndarray, den: np.ndarray) -> np.ndarray:
