@@ -83,6 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="write the report into this folder: report.md with its PNG plots, and report.html, "
                            "the same as one page with the plots embedded (opens offline), led by what differs, "
                            "how sure, and what to change in the config")
+    diag.add_argument("--fit-all", action="store_true",
+                      help="fit every frame of a long recording (by default a flight over 22.5 min is fitted on "
+                           "15 min of 60 s blocks spread evenly over it and checked on the rest: the time budget)")
     diag.add_argument("--model-out", metavar="TOML",
                       help="write the fitted model: the nominal config plus an [effects.<name>] table per "
                            "significant finding (uncertainties as comments), loadable with --config; the vehicle's "

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from companion.config import Config, load_config
 from companion.diagnose.closed_loop.channels import has_commands
-from companion.diagnose.closed_loop.diagnosis import STAGES, Diagnosis, diagnose
+from companion.diagnose.closed_loop.diagnosis import FIT_SPAN_S, STAGES, Diagnosis, diagnose
 from companion.diagnose.closed_loop.markdown import write_report
 from companion.diagnose.fitted_model import fitted_findings, heldout_split_s, model_toml, write_model
 from companion.diagnose.report import Report
@@ -89,7 +89,8 @@ def run_cli(args: argparse.Namespace) -> int:
             bar.update(1)
 
     try:
-        diag = diagnose(rec, cfg, profile=args.profile, progress=progress)
+        diag = diagnose(rec, cfg, profile=args.profile, progress=progress,
+                        fit_span_s=None if args.fit_all else FIT_SPAN_S)
     finally:
         if bar is not None:
             bar.close()

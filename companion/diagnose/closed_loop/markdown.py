@@ -32,6 +32,17 @@ def _dec(*arrays: np.ndarray) -> list[np.ndarray]:
     return [a[::step] for a in arrays]
 
 
+def _broken(t: np.ndarray, *ys: np.ndarray) -> list[np.ndarray]:
+    """(t, *ys) with a NaN row inserted in every gap over 2 s and over five times the median step
+    (lost telemetry, the part of a long flight held back from the fit): a line is not drawn across
+    what was not fitted."""
+    if len(t) < 3:
+        return [t, *ys]
+    dt = np.diff(t)
+    cut = np.flatnonzero(dt > max(2.0, 5.0 * float(np.median(dt)))) + 1
+    return [np.insert(np.asarray(a, dtype=float), cut, np.nan) for a in (t, *ys)]
+
+
 def _plt() -> Any:  # matplotlib's pyplot module
     import matplotlib
 
@@ -56,7 +67,7 @@ def plot_residuals(diag: Diagnosis, path: Path) -> Path:
         ch = g.channels[c]
         t = g.row_times[c]
         order = np.argsort(t, kind="stable")
-        tt, rn, rf = _dec(t[order], res.r_nominal[c][order], res.r_final[c][order])
+        tt, rn, rf = _broken(*_dec(t[order], res.r_nominal[c][order], res.r_final[c][order]))
         ax.plot(tt, rn, color=COLORS["nominal"], lw=0.6, label="nominal model")
         ax.plot(tt, rf, color=COLORS["extended"], lw=0.6, label="with the effects found")
         for iv in res.mismatch_windows.get(ch, []):

@@ -1,0 +1,79 @@
+"""Long recordings (issue 12's time budget): a flight over 1.5 x ``FIT_SPAN_S`` is fitted on evenly
+spread blocks that add up to it, and the fitted model is checked on the rest, so that what acts
+only in the held-back part is still said (``diagnosis.fit_blocks``, ``_check_held_back``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.config import load_config
+from companion.diagnose.closed_loop.diagnosis import FIT_BLOCK_S, FIT_SPAN_S, diagnose, fit_blocks
+from companion.recordings.load import load_recording
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _starts(mask: np.ndarray) -> np.ndarray:
+    return np.flatnonzero(np.diff(np.r_[False, mask].astype(int)) == 1)
+
+
+def test_the_fitted_blocks_are_spread_evenly_from_the_first_frame_to_the_last():
+    t = 1000.0 + np.arange(0, 3600.0, 0.02)  # an hour at 50 Hz, report time from 1000 s
+    keep = fit_blocks(t, FIT_SPAN_S)
+    assert keep is not None and keep[0] and keep[-1]
+    starts = _starts(keep)
+    n = int(np.ceil(FIT_SPAN_S / FIT_BLOCK_S))
+    assert len(starts) == n
+    # each block FIT_BLOCK_S long (the last also holds the last frame), together FIT_SPAN_S
+    assert abs(keep.sum() * 0.02 - n * FIT_BLOCK_S) <= 2 * 0.02
+    step = (3600.0 - 0.02 - FIT_BLOCK_S) / (n - 1)
+    np.testing.assert_allclose(np.diff(t[starts]), step, atol=0.02)
+
+
+@pytest.mark.parametrize("minutes", [0.5, 20.0, 22.4])
+def test_a_flight_up_to_one_and_a_half_fit_spans_is_fitted_whole(minutes):
+    assert fit_blocks(np.arange(0.0, minutes * 60.0, 0.02), FIT_SPAN_S) is None
+
+
+def test_a_gust_in_the_held_back_part_is_said_where_it_acts(tmp_path):
+    """A 150 s flight (the matrix's generator, noise but no loss) with a 1.5 N gust over 20 s,
+    fitted as if 40 s were the span: the two 60 s blocks at its ends are fitted, the gust's
+    middle is held back. The fit cannot name the gust, but the headline says the model does not
+    fit force_x where it blows, by about its 1.5 N; fitted whole, the gust is found."""
+    from simvehicle.engines import flightgen as fg
+
+    spec = fg.draw_spec(95)
+    prof = fg.draw_profile(np.random.default_rng([95, 13]), spec.warmup_s + 150.0, 1.5, False, 1.5)
+    spec = dataclasses.replace(spec, duration_s=150.0, flight=prof, loss=fg.Loss(),
+                               noise=fg.Noise(gyro_white_rad_s=0.002, att_white_rad=0.001),
+                               effects={"wind_force": {"fx": -1.5, "fy": 0.0, "start_s": 65.0, "end_s": 85.0}})
+    g = fg.write_flight(spec, fg.simulate(spec), tmp_path, "gust")
+    truth = g.truth["effects"]["wind_force"]
+    rec, cfg = load_recording(g.tlog), load_config(g.config)
+
+    rep = diagnose(rec, cfg, fit_span_s=40.0).report
+    assert rep.significant() == []
+    assert rep.headline.startswith("The model does not fit force_x from")
+    [u] = [u for u in rep.unexplained if u.channel == "force_x"]
+    assert u.start_s < truth["end_s"] and u.end_s > truth["start_s"]
+    assert u.start_s > 60.0 - 5.0 and u.end_s < 90.0 + 5.0  # the held-back part, to a window
+    assert abs(u.rms - 1.5) < 0.5
+    assert any(n.startswith("a long recording: the effects fitted on 2.0 of 2.5 min") for n in rep.notes)
+    assert any(n.startswith("the held-back 0.5 min, not fitted") for n in rep.notes)
+
+    whole = diagnose(rec, cfg, fit_span_s=None).report
+    [w] = [f for f in whole.significant() if f.effect == "wind_force"]
+    assert abs(w.parameters["fx"] + 1.5) < 0.15
+    assert abs(w.parameters["start_s"] - truth["start_s"]) < 1.5
+
+
+def test_fit_all_on_the_command_line(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "companion", "diagnose", "--help"], cwd=ROOT, capture_output=True,
+                         text=True, check=True).stdout
+    assert "--fit-all" in out
