@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from companion.config import load_config
-from companion.diagnose.closed_loop.diagnosis import FIT_BLOCK_S, FIT_SPAN_S, diagnose, fit_blocks
+from companion.diagnose.closed_loop.diagnosis import FIT_BLOCK_S, FIT_SPAN_S, diagnose, fit_blocks, flown_time_s
 from companion.recordings.load import load_recording
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -34,6 +34,28 @@ def test_the_fitted_blocks_are_spread_evenly_from_the_first_frame_to_the_last():
     assert abs(keep.sum() * 0.02 - n * FIT_BLOCK_S) <= 2 * 0.02
     step = (3600.0 - 0.02 - FIT_BLOCK_S) / (n - 1)
     np.testing.assert_allclose(np.diff(t[starts]), step, atol=0.02)
+
+
+def test_no_block_falls_where_nothing_was_flown():
+    """Two 20 min flights an hour apart in one log (the companion engaged twice): the blocks are
+    spread over the 40 min flown, not over the 100 min the log spans."""
+    from companion.diagnose.closed_loop.channels import FlightData
+
+    t = np.r_[np.arange(0.0, 1200.0, 0.02), 4800.0 + np.arange(0.0, 1200.0, 0.02)]
+    n = len(t)
+    z = np.zeros(n)
+    seg = (t > 3000.0).astype(int)
+    data = FlightData(path="synthetic", profile="paper", profile_reason="test", frame_s=0.02, command_source="test",
+                      t_s=t, dt_s=np.r_[0.02, np.diff(t)], seg=seg, dphi_x_rad=z, dphi_y_rad=z, gyro_x_rad_s=z,
+                      gyro_y_rad_s=z, range_m=z + 1.0, roll_rad=z, pitch_rad=z, yaw_rad=z, roll_cmd_rad=z,
+                      pitch_cmd_rad=z, vx_set_m_s=z, vy_set_m_s=z, truth_vx_m_s=z, truth_vy_m_s=z)
+    flown = flown_time_s(data)
+    assert flown[-1] == pytest.approx(2400.0 - 2 * 0.02)
+    keep = fit_blocks(flown, FIT_SPAN_S)
+    assert keep is not None
+    assert abs(keep.sum() * 0.02 - FIT_SPAN_S) <= 2 * 0.02
+    # the blocks in each flight as its share of the flown time (half each, within a block)
+    assert abs(keep[seg == 0].sum() - keep[seg == 1].sum()) * 0.02 <= FIT_BLOCK_S
 
 
 @pytest.mark.parametrize("minutes", [0.5, 20.0, 22.4])

@@ -59,15 +59,16 @@ ALIKE = {
     "attitude_dynamics": ("attitude_delay",),
     "attitude_delay": ("attitude_dynamics",),
 }
-#: a recording with more than this much usable flight (s) is fitted on ``FIT_BLOCK_S`` blocks spread
-#: evenly over it that add up to this much, and the rest is held back to check the fitted model
-#: (``fit_blocks``, ``_check_held_back``). Why: issue 12's budget, under a quarter of pymavlink's
-#: bare read time for an hour whatever the recording, which every frame of a lossy hour missed by
-#: half (10.4 s against 22.5 s: thousands of attitude segments, the flow group twice); fitted on
-#: 15 of its 60 minutes, the same three effects are found, their sigmas about twice as large
-#: (docs/diagnose.md section 6). Fifteen minutes of flight pin every parameter far inside the
-#: effects' size thresholds (``sizes``); what acts only in the held-back part is still said, as an
-#: unexplained stretch. ``diagnose(fit_span_s=None)`` (``--fit-all``) fits every frame.
+#: a recording with more than 1.5 x this much usable flight (s) is fitted on ``FIT_BLOCK_S`` blocks
+#: spread evenly over its flown time (``flown_time_s``) that add up to this much, and the rest is
+#: held back to check the fitted model (``fit_blocks``, ``_check_held_back``). Why: issue 12's
+#: budget, under a quarter of pymavlink's bare read time for an hour whatever the recording, which
+#: every frame of a lossy hour missed by half (10.4 s against 22.5 s: thousands of attitude
+#: segments, the flow group twice); fitted on 15 of its 60 minutes, the same three effects are
+#: found, their sigmas about twice as large (docs/diagnose.md section 6). Fifteen minutes of flight
+#: pin every parameter far inside the effects' size thresholds (``sizes``); what acts only in the
+#: held-back part is still said, as an unexplained stretch. ``diagnose(fit_span_s=None)``
+#: (``--fit-all``) fits every frame.
 FIT_SPAN_S = 900.0
 #: the length of one fitted block (s): long against the attitude loop, the flow and force windows
 #: (1 s) and the cross-validation's time blocks, so that the blocks' ends cost little
@@ -269,11 +270,21 @@ def _fit_group(g: Group, settings: Settings, t0: float) -> GroupResult:
     return GroupResult(g, sel, chosen, final, evidence, r_nom, r_fin)
 
 
+def flown_time_s(data: FlightData) -> np.ndarray:
+    """Each usable frame's time from the first, counting only time within segments: the gaps
+    between them (unusable stretches, lost telemetry, reboots) take no time."""
+    dt = np.zeros(data.n)
+    if data.n > 1:
+        dt[1:] = np.where(np.diff(data.seg) == 0, np.diff(data.t_s), 0.0)
+    return np.cumsum(dt)
+
+
 def fit_blocks(t_s: np.ndarray, span_s: float, block_s: float = FIT_BLOCK_S) -> np.ndarray | None:
-    """The frames (bool mask over ``t_s``) of ceil(span / block) blocks of ``block_s``, the first at
-    the first frame, the last ending at the last, the others evenly between; None when the frames
-    span no more than 1.5 x ``span_s`` (then every frame is fitted: what would be held back is
-    then under a third of the flight, and fitting it too costs little)."""
+    """The frames (bool mask over ``t_s``, a flight's time axis: ``flown_time_s``, so that a block
+    never falls where nothing was flown) of max(2, ceil(span / block)) blocks of ``block_s``, the
+    first at the first frame, the last ending at the last, the others evenly between; None when the
+    frames span no more than 1.5 x ``span_s`` (then every frame is fitted: what would be held back
+    is then under a third of the flight, and fitting it too costs little)."""
     if len(t_s) < 2 or not span_s > 0:
         return None
     t = t_s - t_s[0]
@@ -347,7 +358,7 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
         data.notes.append(f"fitted on {window_s[0]:.1f}-{window_s[1]:.1f} s only")
     whole = (data.n, data.duration_s, len(data.segments()))
     held: FlightData | None = None
-    keep = fit_blocks(data.t_s, fit_span_s) if fit_span_s else None
+    keep = fit_blocks(flown_time_s(data), fit_span_s) if fit_span_s else None
     if keep is not None:
         held = data.take(~keep)
         data = data.take(keep)
