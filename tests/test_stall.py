@@ -19,6 +19,7 @@ from companion.config import load_config
 from companion.mavlink import link, outbound
 from companion.mavlink.link import ClockMapping
 from companion.mavlink.live import BACKLOG_SAY_FRAMES, LONG_HOLD_S, MAX_FRAME_AGE_FRAMES, HoldMonitor, LiveCompanion
+from companion.mavlink.session import Command
 from companion.step.controller import pi_step
 from companion.step.core import HoldCause
 from companion.step.profiles import Profile
@@ -148,6 +149,33 @@ def test_a_stall_is_not_replayed(flying):
     # and it flies on, one command per frame
     fl.fly(10)
     assert len(fl.commands(n_sent)) == 11
+
+
+def test_a_stall_inside_a_step_does_not_send_its_old_command(flying):
+    """The process stops after a frame is taken up and before its command is written (a SIGSTOP
+    that falls inside the step: ``tests/test_stall_e2e.py`` met it once in a CI run, a command
+    flown from a frame 2.02 s old). That command is not sent; the next pass of the loop sees the
+    stall and resumes from the newest frame, so no command leaves from a frame older than
+    ``flow_timeout_s``."""
+    fl, live, _console = flying
+    n_sent = len(fl.written)
+    emit = live._emit
+    stalled = []
+
+    def stall_inside(outs, taken_up_s=None):
+        if taken_up_s is not None and not stalled and any(isinstance(o, Command) for o in outs):
+            stalled.append(True)
+            fl.stall(2.0)  # stopped here: the clock runs, the vehicle queues 100 frames
+        emit(outs, taken_up_s)
+
+    live._emit = stall_inside
+    fl.fly(5)
+    assert stalled
+    sent = fl.commands(n_sent)
+    ages = [t - m.time_boot_ms * 1e-3 - (fl.clock - fl.sim.t_s) for t, m in sent]
+    assert sent and max(ages) < CFG.companion.flow_timeout_s, ages
+    assert live.counters["commands not sent (stalled inside the step)"] == 1
+    assert live.counters["companion stalls"] == 1
 
 
 def test_a_backlog_on_the_link_is_dropped_by_age(flying):

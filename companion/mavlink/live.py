@@ -427,11 +427,12 @@ class LiveCompanion:
             for buf in bufs:
                 self.tlog.write(buf)
 
-    def _emit(self, outs: list[Out]) -> None:
-        """Send what the session asked for, in its order."""
+    def _emit(self, outs: list[Out], taken_up_s: float | None = None) -> None:
+        """Send what the session asked for, in its order; ``taken_up_s``: the clock when the message
+        these answer was taken up (``_send_step``)."""
         for o in outs:
             if isinstance(o, Command):
-                self._send_step(o)
+                self._send_step(o, taken_up_s)
             elif isinstance(o, Estimate):
                 self._send(outbound.vision_speed(self.conn.mav, int(round(o.time_s * 1e6)), o.vx_m_s, o.vy_m_s,
                                                  o.vx_var_m2_s2, o.vy_var_m2_s2))
@@ -440,9 +441,16 @@ class LiveCompanion:
             else:
                 self.out(o.text)
 
-    def _send_step(self, c: Command) -> None:
+    def _send_step(self, c: Command, taken_up_s: float | None = None) -> None:
         """POSITION_TARGET_LOCAL_NED, VISION_SPEED_ESTIMATE (with an estimate), then SET_ATTITUDE_TARGET,
-        in one datagram, in MAVLink's units."""
+        in one datagram, in MAVLink's units. A step's command (``taken_up_s``: the clock when its
+        frame was taken up) is not sent when the process stopped between then and here for longer
+        than ``flow_timeout_s`` (a SIGSTOP or a swap that fell inside the step): it would fly a
+        frame that old; the main loop then sees the stall and resumes from the newest frame
+        (``_on_stall``). The watchdog's level commands are always sent."""
+        if taken_up_s is not None and self.clock() - taken_up_s > self.cfg.companion.flow_timeout_s:
+            self.counters["commands not sent (stalled inside the step)"] += 1
+            return
         ms = int(round(c.time_s * 1e3)) if math.isfinite(c.time_s) else 0
         enc = self.conn.mav
         msgs = [outbound.position_target(enc, ms, c.vx_set_m_s, c.vy_set_m_s)]
@@ -627,7 +635,7 @@ class LiveCompanion:
         elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
             self._on_command(msg)
         behind = self._catching_up and msg is not self._resume_frame  # a stall's backlog: only the newest flies
-        self._emit(self.session.on_message(msg, now, vehicle=vehicle, arrival_s=arrival, behind=behind))
+        self._emit(self.session.on_message(msg, now, vehicle=vehicle, arrival_s=arrival, behind=behind), now)
 
     def _on_command(self, msg: Any) -> None:
         """A command addressed to the companion: none is supported, so it is refused with a

@@ -431,7 +431,10 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
         _unexplained(name, res, data, ap, gp, fp, fstate, settings, report)
         report.notes.extend(res.selector.notes)
     if held is not None and held.n:
-        _check_held_back(held, cfg, results, lag, fstate, report)
+        try:
+            _check_held_back(held, cfg, results, lag, fstate, report)
+        except (RecordingError, ValueError) as exc:  # the fit stands; what could not be checked is said
+            report.notes.append(f"the held-back {held.duration_s / 60.0:.1f} min could not be checked: {exc}")
     report.findings.sort(key=lambda f: (not f.significant, -(f.fit.improvement_pct if f.fit else 0.0)))
     report.headline = headline(report)
     report.actions = actions(report, profile=data.profile, q_rad_per_count=cfg.flow_sensor.q_rad_per_count,
