@@ -99,3 +99,48 @@ def test_fit_all_on_the_command_line(tmp_path):
     out = subprocess.run([sys.executable, "-m", "companion", "diagnose", "--help"], cwd=ROOT, capture_output=True,
                          text=True, check=True).stdout
     assert "--fit-all" in out
+
+
+def _rows_by_definition(data, delay_frames):
+    """``groups.attitude_rows`` as its rule reads, one run of lost commands at a time."""
+    from companion.diagnose.closed_loop.groups import AFTER_COMMAND_GAP_S, COMMAND_SETTLE_FRAMES, _runs
+
+    rows = data.att_rec.copy()
+    t = data.t_s
+    lost = np.flatnonzero(~data.cmd_rec)
+    for k in range(COMMAND_SETTLE_FRAMES + max(delay_frames, 0)):
+        rows[np.minimum(lost + k, data.n - 1)] = False
+    for a, b in _runs(~data.cmd_rec, 2):
+        rows &= ~((t >= t[a]) & (t <= t[b - 1] + AFTER_COMMAND_GAP_S + max(delay_frames, 0) * data.frame_s))
+    return rows
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+def test_the_attitude_rows_after_lost_commands_are_those_of_the_rule(shuffle):
+    """The frames left out after runs of lost commands, marked for all runs at once (a lossy hour
+    has thousands), are those of the rule applied run by run: 20 % of commands lost at random and
+    in bursts, time stamps jittered, and (``shuffle``) frames out of time order."""
+    from companion.diagnose.closed_loop.channels import FlightData
+    from companion.diagnose.closed_loop.groups import attitude_rows
+
+    rng = np.random.default_rng(3)
+    n = 6000
+    t = np.arange(n) * 0.02 + rng.uniform(-0.004, 0.004, n)
+    if shuffle:  # the rule holds on any times: some frames swap theirs with a frame 2 s away
+        k = rng.choice(np.arange(0, n - 100, 200), 20, replace=False)
+        t[k], t[k + 100] = t[k + 100].copy(), t[k].copy()
+    cmd = rng.random(n) > 0.2
+    for a in rng.choice(n - 40, 30, replace=False):
+        cmd[a:a + 25] = False
+    att = rng.random(n) > 0.05
+    z = np.zeros(n)
+    data = FlightData(path="synthetic", profile="paper", profile_reason="test", frame_s=0.02, command_source="test",
+                      t_s=t, dt_s=np.r_[0.02, np.diff(t)], seg=np.zeros(n, dtype=int), dphi_x_rad=z, dphi_y_rad=z,
+                      gyro_x_rad_s=z, gyro_y_rad_s=z, range_m=z + 1.0, roll_rad=z, pitch_rad=z, yaw_rad=z,
+                      roll_cmd_rad=z, pitch_cmd_rad=z, vx_set_m_s=z, vy_set_m_s=z, truth_vx_m_s=z, truth_vy_m_s=z,
+                      att_rec=att, cmd_rec=cmd)
+    for delay in (0, 3):
+        got = attitude_rows(data, delay)
+        want = _rows_by_definition(data, delay)
+        assert 0 < got.sum() < n
+        np.testing.assert_array_equal(got, want)

@@ -361,9 +361,21 @@ def test_a_tie_between_rotation_sources_goes_to_the_gyro(gyro_noise):
         v = np.r_[0.0, np.cumsum(0.5 * np.diff(t) * sgn * 9.81 * (np.tan(ang[1:]) + np.tan(ang[:-1])))]
         y = np.r_[0.0, np.cumsum(0.5 * np.diff(t) * (v[1:] + v[:-1]))]
         setattr(data, name, np.r_[0.0, np.diff(1.15 * sgn * ang - y)])
-    flow_group(data, cfg)
+    g, _fp, state = flow_group(data, cfg)
     chose_gyro = [n for n in data.notes if n.startswith("the flow's rotation from the gyro")]
     if gyro_noise == 0.0:
         assert len(chose_gyro) == 1 and "as good as the attitude estimate" in chose_gyro[0]
+        assert state.source == "gyro" and state.source_note == chose_gyro[0]
     else:
         assert not chose_gyro
+        assert state.source == "attitude" and state.source_note is None
+    # the group rebuilt with that source named (an anchor moved, a held-back part): the same
+    # residuals, nothing said; a source the flight does not have is chosen again
+    n_notes = len(data.notes)
+    g2, _fp2, state2 = flow_group(data, cfg, source=state.source)
+    assert state2.source == state.source and state2.source_note is None
+    assert not [n for n in data.notes[n_notes:] if n.startswith("the flow's rotation from")]
+    for a, b in zip(g.residuals(g.nominal), g2.residuals(g2.nominal), strict=True):
+        np.testing.assert_array_equal(a, b)
+    _g3, _fp3, state3 = flow_group(data, cfg, source="flow")  # no flow body rate in this flight
+    assert state3.source == state.source

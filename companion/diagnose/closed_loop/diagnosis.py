@@ -308,7 +308,8 @@ def _check_held_back(held: FlightData, cfg: Config, results: dict[str, GroupResu
     hour's held-back force residual (the bench's 2 h flight)."""
     ga, _ap = attitude_group(held, cfg)
     gg, _gp = gyro_group(held)
-    gf, _fp, st = flow_group(held, cfg, gyro_lag_s=gyro_lag_s, p_anchor=results["flow"].final.p)
+    gf, _fp, st = flow_group(held, cfg, gyro_lag_s=gyro_lag_s, p_anchor=results["flow"].final.p,
+                             source=fstate.source)  # the fit's rotation source
     st.window = fstate.window  # the wind where the fit put it
     said = []
     for g in (ga, gg, gf):
@@ -390,8 +391,9 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
         # with a large geometry effect chosen (a 12 deg yaw, a 20 % scale), its second-order share
         # would be fitted as another effect, so the group is built again about the chosen model and
         # the selection rerun from there (``FlowProblem.anchor``)
-        data.notes[:] = notes
-        gf, fp, fstate = flow_group(data, cfg, gyro_lag_s=lag, p_anchor=results["flow"].final.p)
+        data.notes[:] = notes + ([fstate.source_note] if fstate.source_note else [])
+        gf, fp, fstate = flow_group(data, cfg, gyro_lag_s=lag, p_anchor=results["flow"].final.p,
+                                    source=fstate.source)
         results["flow"] = _fit_group(gf, settings, t0)
     timings["flow_s"] = time.perf_counter() - t
     step(STAGES[3])

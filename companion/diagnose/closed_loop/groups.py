@@ -71,8 +71,24 @@ def attitude_rows(data: FlightData, delay_frames: int = 0) -> np.ndarray:
     lost = np.flatnonzero(~data.cmd_rec)
     for k in range(COMMAND_SETTLE_FRAMES + max(delay_frames, 0)):
         rows[np.minimum(lost + k, data.n - 1)] = False
-    for a, b in _runs(~data.cmd_rec, 2):
-        rows &= ~((t >= t[a]) & (t <= t[b - 1] + AFTER_COMMAND_GAP_S + max(delay_frames, 0) * data.frame_s))
+    # after a run of lost commands, every frame timed from its first to AFTER_COMMAND_GAP_S past its
+    # last (plus the delay): intervals of time, marked on the frames sorted by time at once (a
+    # lossy hour has thousands of runs)
+    runs = np.array(_runs(~data.cmd_rec, 2), dtype=np.int64).reshape(-1, 2)
+    if len(runs):
+        lo = t[runs[:, 0]]
+        hi = t[runs[:, 1] - 1] + AFTER_COMMAND_GAP_S + max(delay_frames, 0) * data.frame_s
+        order = np.argsort(t, kind="stable")
+        ts = t[order]
+        i0 = np.searchsorted(ts, lo, side="left")
+        i1 = np.searchsorted(ts, hi, side="right")
+        keep = i1 > i0
+        d = np.zeros(len(t) + 1, dtype=np.int64)
+        np.add.at(d, i0[keep], 1)
+        np.add.at(d, i1[keep], -1)
+        out = np.empty(len(t), dtype=bool)
+        out[order] = np.cumsum(d[:-1]) > 0
+        rows &= ~out
     return rows
 
 
@@ -252,6 +268,9 @@ class FlowGroupState:
         self.n_flow_rows = fp.flow.idx.size
         #: the filter each flow channel's window rows go through (``ar_whitener``), per axis
         self.whiten: list[Callable[[np.ndarray], np.ndarray]] = [lambda r: r, lambda r: r]
+        #: the flow's rotation source (``ROTATION_SOURCES``) and the note that said why, when chosen
+        self.source = "attitude"
+        self.source_note: str | None = None
 
     @property
     def start_end(self) -> tuple[float, float]:
@@ -618,28 +637,45 @@ GEOMETRY_EFFECTS = ("flow_scale", "flow_yaw_misalignment", "flow_delay", "range_
                     "flow_lever_arm")
 
 
-def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor: np.ndarray | None = None
-               ) -> tuple[Group, FlowProblem, FlowGroupState]:
+#: the flow's rotation sources, in the order they are tried (``flow_group``)
+ROTATION_SOURCES = ("attitude", "gyro", "flow")
+
+
+def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor: np.ndarray | None = None,
+               source: str | None = None) -> tuple[Group, FlowProblem, FlowGroupState]:
     """The flow group, its rotation taken from the source that explains the recorded flow better:
-    the attitude estimate, or the gyro fused with it (``rotation_angles``). The flow sees the true
-    rotation, so the source nearer the truth leaves the smaller nominal residual; which one was
-    used goes to ``data.notes``."""
+    the attitude estimate, or the gyro fused with it (``rotation_angles``), or the flow message's
+    own body rate. The flow sees the true rotation, so the source nearer the truth leaves the
+    smaller nominal residual; which one was used goes to ``data.notes`` and to the state
+    (``FlowGroupState.source``). ``source`` (one of ``ROTATION_SOURCES``): take that one without
+    choosing, and say nothing of it (the group rebuilt about an anchor, whose choice would be the
+    same; the part of a long flight held back from the fit, judged with the fit's source); when
+    this flight has no such source, the choice is made."""
     kw: dict[str, Any] = dict(mass_kg=cfg.airframe.mass_kg, gravity_m_s2=cfg.airframe.gravity_m_s2)
-    fp = FlowProblem(data, **kw)
-    sources = [("the attitude estimate", fp)]
-    #: the stream whose time the flow's rotation comes on (``timing_sigma_s``; None: the flow's own)
-    streams: list[str | None] = ["attitude"]
-    fused = rotation_angles(data, gyro_lag_s)
+    fused = rotation_angles(data, gyro_lag_s) if source in (None, "gyro") else None
+    own = flow_body_angles(data) if source in (None, "flow") else None
+    if (source == "gyro" and fused is None) or (source == "flow" and own is None):
+        source = None
+        fused, own = rotation_angles(data, gyro_lag_s), flow_body_angles(data)
+    fp = FlowProblem(data, **kw) if source in (None, "attitude") else None
+    sources: list[tuple[str, FlowProblem]] = [] if fp is None else [("the attitude estimate", fp)]
+    #: each source's key (``ROTATION_SOURCES``) and the stream whose time its rotation comes on
+    #: (``timing_sigma_s``; None: the flow's own)
+    keys: list[str] = [] if fp is None else ["attitude"]
+    streams: list[str | None] = [] if fp is None else ["attitude"]
     if fused is not None:
         sources.append((f"the gyro above {ROTATION_CROSSOVER_HZ:g} Hz and the attitude below",
                         FlowProblem(data, rotation_angles=fused, **kw)))
+        keys.append("gyro")
         streams.append("gyro")
-    own = flow_body_angles(data)
     if own is not None:
         sources.append(("the flow message's own body rate, sampled with the flow",
                         FlowProblem(data, rotation_angles=own, **kw)))
+        keys.append("flow")
         streams.append(None)
-    rotation_stream = streams[0]
+    fp = sources[0][1]
+    chosen, rotation_stream = keys[0], streams[0]
+    source_note = None
     if len(sources) > 1:
         # both channels judge: the flow's geometry, and the force balance the odometry feeds
         noise = np.array([_flow_noise(f) for _name, f in sources])
@@ -650,13 +686,14 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
         if tie:  # a measured rate over the estimate that infers the rotation from it
             best = 1
         fp = sources[best][1]
-        rotation_stream = streams[best]
+        chosen, rotation_stream = keys[best], streams[best]
         if best:
             why = (f"as good as the attitude estimate, within {100 * SOURCE_TIE:g} %, and a measurement" if tie
                    else "it explains the flow best")
-            data.notes.append(f"the flow's rotation from {sources[best][0]} ({why}: residual "
-                              f"{noise[best]:.3g} rad and {force[best]:.3g} N against {noise[0]:.3g} rad and "
-                              f"{force[0]:.3g} N from the attitude estimate)")
+            source_note = (f"the flow's rotation from {sources[best][0]} ({why}: residual "
+                           f"{noise[best]:.3g} rad and {force[best]:.3g} N against {noise[0]:.3g} rad and "
+                           f"{force[0]:.3g} N from the attitude estimate)")
+            data.notes.append(source_note)
     base = fp
     # the effects' regressors from sources whose noise the residual does not share (``anchor``):
     # the rotation from the gyro, the velocity from the tilt above a low crossover
@@ -684,6 +721,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
                           f"under {QUIET_ROTATION_COUNTS:g} count of rotation on both axes, what rotation there is "
                           f"is the loop's answer to the flow's own rounding")
     state = FlowGroupState(fp)
+    state.source, state.source_note = chosen, source_note
     e0 = base.flow_residual(p_a)
     whiten = state.whiten = [ar_whitener(e0[0]), ar_whitener(e0[1])]
     state.n_flow_rows = fp.flow.idx.shape[0] * max(fp.flow.idx.shape[1] - WHITEN_ORDER, 0)
