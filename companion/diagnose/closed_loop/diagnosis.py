@@ -294,7 +294,7 @@ def fit_blocks(t_s: np.ndarray, span_s: float, block_s: float = FIT_BLOCK_S) -> 
     n = max(2, math.ceil(span_s / block_s))
     starts = np.linspace(0.0, total - block_s, n)
     k = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, n - 1)
-    return (t >= starts[k]) & (t < starts[k] + block_s) | (t >= total - block_s)
+    return ((t >= starts[k]) & (t < starts[k] + block_s)) | (t >= total - block_s)
 
 
 def _check_held_back(held: FlightData, cfg: Config, results: dict[str, GroupResult], gyro_lag_s: float,

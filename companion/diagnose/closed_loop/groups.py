@@ -637,8 +637,9 @@ GEOMETRY_EFFECTS = ("flow_scale", "flow_yaw_misalignment", "flow_delay", "range_
                     "flow_lever_arm")
 
 
-#: the flow's rotation sources, in the order they are tried (``flow_group``)
-ROTATION_SOURCES = ("attitude", "gyro", "flow")
+#: the flow's rotation sources, in the order they are tried (``flow_group``), each with the stream
+#: whose time its rotation comes on (``timing_sigma_s``; None: the flow's own)
+ROTATION_SOURCES: dict[str, str | None] = {"attitude": "attitude", "gyro": "gyro", "flow": None}
 
 
 def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor: np.ndarray | None = None,
@@ -651,6 +652,8 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
     choosing, and say nothing of it (the group rebuilt about an anchor, whose choice would be the
     same; the part of a long flight held back from the fit, judged with the fit's source); when
     this flight has no such source, the choice is made."""
+    if source is not None and source not in ROTATION_SOURCES:
+        raise ValueError(f"flow_group: no rotation source {source!r} (one of {', '.join(ROTATION_SOURCES)})")
     kw: dict[str, Any] = dict(mass_kg=cfg.airframe.mass_kg, gravity_m_s2=cfg.airframe.gravity_m_s2)
     fused = rotation_angles(data, gyro_lag_s) if source in (None, "gyro") else None
     own = flow_body_angles(data) if source in (None, "flow") else None
@@ -659,22 +662,17 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
         fused, own = rotation_angles(data, gyro_lag_s), flow_body_angles(data)
     fp = FlowProblem(data, **kw) if source in (None, "attitude") else None
     sources: list[tuple[str, FlowProblem]] = [] if fp is None else [("the attitude estimate", fp)]
-    #: each source's key (``ROTATION_SOURCES``) and the stream whose time its rotation comes on
-    #: (``timing_sigma_s``; None: the flow's own)
-    keys: list[str] = [] if fp is None else ["attitude"]
-    streams: list[str | None] = [] if fp is None else ["attitude"]
+    keys: list[str] = [] if fp is None else ["attitude"]  # each source's ``ROTATION_SOURCES`` key
     if fused is not None:
         sources.append((f"the gyro above {ROTATION_CROSSOVER_HZ:g} Hz and the attitude below",
                         FlowProblem(data, rotation_angles=fused, **kw)))
         keys.append("gyro")
-        streams.append("gyro")
     if own is not None:
         sources.append(("the flow message's own body rate, sampled with the flow",
                         FlowProblem(data, rotation_angles=own, **kw)))
         keys.append("flow")
-        streams.append(None)
     fp = sources[0][1]
-    chosen, rotation_stream = keys[0], streams[0]
+    chosen = keys[0]
     source_note = None
     if len(sources) > 1:
         # both channels judge: the flow's geometry, and the force balance the odometry feeds
@@ -686,7 +684,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
         if tie:  # a measured rate over the estimate that infers the rotation from it
             best = 1
         fp = sources[best][1]
-        chosen, rotation_stream = keys[best], streams[best]
+        chosen = keys[best]
         if best:
             why = (f"as good as the attitude estimate, within {100 * SOURCE_TIE:g} %, and a measurement" if tie
                    else "it explains the flow best")
@@ -742,7 +740,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
     assert len(lower) == len(PARAMS)
     g = Group(
         name="flow", params=PARAMS, nominal=NOMINAL.copy(),
-        timing=("delay", flow_timing_sigma_s(data, rotation_stream)),
+        timing=("delay", flow_timing_sigma_s(data, ROTATION_SOURCES[chosen])),
         steps=np.array([1e-3, 1e-3, 1e-3, 1e-3, 2e-3, 1e-2, 1e-2, 1e-2, 1e-3, 1e-2, 1e-3]), lower=lower, upper=upper,
         channels=("flow_x", "flow_y", "force_x", "force_y"), units=("rad", "rad", "N", "N"),
         floors=(max(data.flow_resolution_rad, 1e-5),) * 2 + (1e-3, 1e-3), residuals=residuals,
