@@ -316,18 +316,16 @@ def _check_held_back(held: FlightData, cfg: Config, results: dict[str, GroupResu
         res = results[g.name]
         r = g.residuals(res.final.p)
         for c, ch in enumerate(g.channels):
-            x, fitted = r[c], res.r_final[c]
-            x, fitted = x[np.isfinite(x)], fitted[np.isfinite(fitted)]
+            ok = np.isfinite(r[c])
+            x, tt = r[c][ok], g.row_times[c][ok]
+            fitted = res.r_final[c][np.isfinite(res.r_final[c])]
             if not len(x) or not len(fitted):
                 continue
             sigma = float(res.selector.sigma[c])
             said.append(f"{ch} {float(np.sqrt(np.mean(x ** 2))):.3g} ({float(np.sqrt(np.mean(fitted ** 2))):.3g})")
-            ok = np.isfinite(r[c])
-            tt = g.row_times[c][ok]
             # windows of at least ten rows (the force channel has one a second)
             width = max(5.0, 10.0 * float(np.ptp(tt)) / max(len(tt) - 1, 1))
-            for iv in excess_windows(tt, r[c][ok], sigma, factor=MISFIT_TIMES_NOISE, width_s=width,
-                                     step_s=0.5 * width):
+            for iv in excess_windows(tt, x, sigma, factor=MISFIT_TIMES_NOISE, width_s=width, step_s=0.5 * width):
                 report.unexplained.append(Unexplained(ch, iv.start_s, iv.end_s, iv.rms,
                                                       "no candidate term fits (a local disturbance, in the part "
                                                       "held back from the fit)", sigma))
