@@ -26,11 +26,14 @@ from companion.diagnose.closed_loop.explain import explain
 from companion.diagnose.closed_loop.flowmodel import IDX, FlowProblem
 from companion.diagnose.closed_loop.groups import (
     GEOMETRY_EFFECTS,
+    IV_GAP_FRAMES,
+    IV_MIN_F,
     FlowGroupState,
     GyroProblem,
     attitude_group,
     flow_group,
     gyro_group,
+    lag_by_instruments,
     lever_arm_observable,
 )
 from companion.diagnose.closed_loop.locate import Interval, conditions, effect_windows, excess_windows
@@ -270,6 +273,30 @@ def _fit_group(g: Group, settings: Settings, t0: float) -> GroupResult:
     return GroupResult(g, sel, chosen, final, evidence, r_nom, r_fin)
 
 
+def _lag_from_instruments(res: GroupResult, gp: GyroProblem, data: FlightData) -> str:
+    """Put the chosen gyro lag's instrumental-variables estimate (``groups.lag_by_instruments``)
+    in the gyro group's final model, in place of least squares' (which chose it); the residuals
+    the rest of the diagnosis reads stay the least-squares fit's. Returns the note that says which."""
+    k = res.group.params.index("tau")
+    timing = res.group.timing[1] if res.group.timing else 0.0
+    iv = lag_by_instruments(gp, data, res.selector.block_s, timing)
+    ols, ols_sd = float(res.final.p[k]), math.sqrt(max(float(res.final.cov[k, k]), 0.0))
+    if iv is None or not (math.isfinite(iv.tau_s) and math.isfinite(iv.sd_s)):
+        return (f"gyro lag {1e3 * ols:.1f} +- {1e3 * ols_sd:.2f} ms by least squares: no instruments strong enough to "
+                f"correct it for the gyro's own noise (first-stage F under {IV_MIN_F:g}, or too few rows), "
+                f"so it may read short where the gyro's change over a frame is mostly noise (a hover)")
+    lo, hi = float(res.group.lower[k]), float(res.group.upper[k])
+    res.final.p[k] = min(max(iv.tau_s, lo), hi)
+    res.final.cov[k, :] = 0.0
+    res.final.cov[:, k] = 0.0
+    res.final.cov[k, k] = iv.sd_s ** 2
+    short = ols < iv.tau_s - 2.0 * iv.sd_s
+    return (f"gyro lag by instrumental variables (the gyro's change {IV_GAP_FRAMES} frames either side of each "
+            f"interval; first-stage F {iv.first_stage_f:.0f}): {1e3 * iv.tau_s:.1f} +- {1e3 * iv.sd_s:.2f} ms; least "
+            f"squares, which chose it, read {1e3 * ols:.1f} +- {1e3 * ols_sd:.2f} ms"
+            + (", attenuated by the gyro's own noise" if short else ""))
+
+
 def flown_time_s(data: FlightData) -> np.ndarray:
     """Each usable frame's time from the first, counting only time within segments: the gaps
     between them (unusable stretches, lost telemetry, reboots) take no time."""
@@ -378,6 +405,8 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
             res.loop_form = loop_form(g, ap, res.chosen, res.final.p, t0, settings, res.selector.notes)
         timings[f"{g.name}_s"] = time.perf_counter() - t
         step(stage)
+    if "gyro_lag" in results["gyro"].chosen:
+        data.notes.append(_lag_from_instruments(results["gyro"], gp, data))
     # the flow is compared with the rotation of the gyro above 1 Hz, undone of the lag found
     lag = float(results["gyro"].final.p[2]) if "gyro_lag" in results["gyro"].chosen else 0.0
     t = time.perf_counter()

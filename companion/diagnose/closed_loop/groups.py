@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -25,7 +26,7 @@ from companion.diagnose import filters
 from companion.diagnose.closed_loop.attitude import AttitudeProblem
 from companion.diagnose.closed_loop.channels import FlightData
 from companion.diagnose.closed_loop.flowmodel import AXIS_SIGN, IDX, NOMINAL, PARAMS, FlowProblem
-from companion.diagnose.closed_loop.select import Candidate, Group
+from companion.diagnose.closed_loop.select import Candidate, Group, robust_std
 from companion.diagnose.closed_loop.sizes import threshold
 from companion.diagnose.closed_loop.wind import WindWindow, kernel_regressor, locate, null_pvalue
 
@@ -220,6 +221,104 @@ class GyroProblem:
             self.gyro = np.where(covered, (S[:2, b] - S[:2, a]) / dt, self.gyro)
             self.dgyro = np.where(covered, (S[2:, b] - S[2:, a]) / dt, self.dgyro)
         self.r = self.gyro - self.rate
+
+
+#: frames between a lag interval's ends and the gyro samples its instruments are made of
+#: (``lag_by_instruments``): the spline's value at a frame leans on the two samples either side
+IV_GAP_FRAMES = 3
+#: the first stage's F statistic under which the instruments are too weak to use (the usual rule)
+IV_MIN_F = 19.93
+
+
+@dataclass
+class LagEstimate:
+    """The gyro lag by instrumental variables (``lag_by_instruments``)."""
+
+    tau_s: float
+    sd_s: float  #: the sandwich's, with the stamps' timing in quadrature
+    bias_rad_s: tuple[float, float]
+    first_stage_f: float
+    n_rows: int
+
+
+def lag_by_instruments(gp: GyroProblem, data: FlightData, block_s: float, timing_s: float) -> LagEstimate | None:
+    """The gyro lag's two-stage least squares: the lag regressor (the gyro's change over each
+    interval) replaced by its projection on two instruments, the gyro's change over a frame
+    ``IV_GAP_FRAMES`` before the interval and one as far after it, which share no sample with it;
+    per axis, with the gyro's bias; covariance by the cluster-robust sandwich over time blocks of
+    ``block_s`` (adjacent blocks' cross terms at half weight, as ``Selector._cov``), plus
+    ``timing_s`` squared. None when the gyro is not recorded at the frame rate, when fewer than
+    100 rows have instruments, or when the instruments are weak (first-stage F under ``IV_MIN_F``
+    on either axis).
+
+    Why: the regressor is made of the gyro's own noisy samples, so least squares is attenuated
+    towards zero by the share of its variance that is noise (errors in variables), and in a hover,
+    where the gyro's change over a frame is mostly noise, by far more than its sigma: on the
+    generalisation matrix gen_0278 (a hover, 2.9 mrad/s gyro noise) read 12.4 +- 0.86 ms for 47.8
+    ms. The instruments move with the rate (the loop's motion spans many frames) but not with the
+    noise of the interval's own samples, so the estimate is not attenuated; its sigma is larger,
+    as it should be. The lag is chosen by least squares (the held-out test of ``Selector``), and
+    reported from here."""
+    if np.mean(data.gyro_rec) < 0.75:
+        return None
+    n = data.n
+    a, b = gp.k_prev, gp.k
+    lo, hi = a - IV_GAP_FRAMES - 1, b + IV_GAP_FRAMES + 1
+    ok = (lo >= 0) & (hi < n)
+    ok[ok] &= (data.seg[lo[ok]] == data.seg[a[ok]]) & (data.seg[hi[ok]] == data.seg[b[ok]])
+    ok[ok] &= data.gyro_rec[lo[ok]] & data.gyro_rec[lo[ok] + 1] & data.gyro_rec[hi[ok]] & data.gyro_rec[hi[ok] - 1]
+    t = data.t_s
+    gyr = np.stack([data.gyro_x_rad_s, data.gyro_y_rad_s])
+    rows = np.flatnonzero(ok)
+    if len(rows) < 100:
+        return None
+    l0, l1, h0, h1 = lo[rows], lo[rows] + 1, hi[rows] - 1, hi[rows]
+    y_all, x_all, xh_all, axis_all, time_all = [], [], [], [], []
+    f_min = math.inf
+    for i in (0, 1):
+        g = gyr[i]
+        z = np.stack([(g[l1] - g[l0]) / (t[l1] - t[l0]), (g[h1] - g[h0]) / (t[h1] - t[h0]),
+                      np.ones(len(rows))], axis=1)
+        x = gp.dgyro[i][rows]
+        y = gp.rate[i][rows] - gp.gyro[i][rows]
+        fin = np.all(np.isfinite(z), axis=1) & np.isfinite(x) & np.isfinite(y)
+        z, x, y = z[fin], x[fin], y[fin]
+        if len(x) < 100:
+            return None
+        coef, *_ = np.linalg.lstsq(z, x, rcond=None)
+        xh = z @ coef
+        ss_res = float(np.sum((x - xh) ** 2))
+        ss_tot = float(np.sum((x - x.mean()) ** 2))
+        f = ((ss_tot - ss_res) / 2.0) / (ss_res / max(len(x) - 3, 1)) if ss_res > 0 else math.inf
+        f_min = min(f_min, f)
+        # each axis weighted by its residual's scale (least squares' residual about its own fit)
+        c_ols, *_ = np.linalg.lstsq(np.stack([x, np.ones_like(x)], axis=1), y, rcond=None)
+        w = 1.0 / max(robust_std(y - c_ols[0] * x - c_ols[1]), 1e-12)
+        y_all.append(w * y)
+        x_all.append(np.stack([w * x, w * (i == 0) * np.ones_like(x), w * (i == 1) * np.ones_like(x)], axis=1))
+        xh_all.append(np.stack([w * xh, w * (i == 0) * np.ones_like(x), w * (i == 1) * np.ones_like(x)], axis=1))
+        axis_all.append(np.full(len(x), i))
+        time_all.append(gp.t_s[rows][fin])
+    if not f_min >= IV_MIN_F:
+        return None
+    Y, X, XH = np.concatenate(y_all), np.concatenate(x_all), np.concatenate(xh_all)
+    A = XH.T @ X
+    beta = np.linalg.solve(A, XH.T @ Y)
+    u = Y - X @ beta
+    ts = np.concatenate(time_all)
+    blk = np.floor((ts - ts.min()) / block_s).astype(int)
+    sb = np.zeros((blk.max() + 1, 3))
+    np.add.at(sb, blk, XH * u[:, None])
+    S = sb.T @ sb
+    if len(sb) > 1:
+        cross = sb[1:].T @ sb[:-1]
+        S = S + 0.5 * (cross + cross.T)
+    Ai = np.linalg.inv(A)
+    B = len(sb)
+    cov = Ai @ S @ Ai.T * B / max(B - 3, 1)
+    sd = math.sqrt(max(float(cov[0, 0]), 0.0) + timing_s ** 2)
+    return LagEstimate(tau_s=float(beta[0]), sd_s=sd, bias_rad_s=(-float(beta[1]), -float(beta[2])),
+                       first_stage_f=float(f_min), n_rows=len(Y))
 
 
 def timing_sigma_s(data: FlightData, a: str, b: str) -> float:
@@ -713,6 +812,16 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
                            f"{noise[best]:.3g} rad and {force[best]:.3g} N against {noise[0]:.3g} rad and "
                            f"{force[0]:.3g} N from the attitude estimate)")
             data.notes.append(source_note)
+    lag_sigma = timing_sigma_s(data, "gyro", "attitude")
+    if chosen == "gyro" and gyro_lag_s > 0 and lag_sigma > 0:
+        # the lag was timed against the attitude; the flow sees the rotation on its own time
+        lag_flow = _flow_lag(data, gyro_lag_s, STAMP_ALIGN_SIGMAS * lag_sigma, kw)
+        if abs(lag_flow - gyro_lag_s) >= 1e-5:
+            data.notes.append(f"the gyro lag undone in the flow's rotation: {1e3 * lag_flow:.2f} ms, what the flow "
+                              f"asks for within +-{1e3 * STAMP_ALIGN_SIGMAS * lag_sigma:.2f} ms of the gyro group's "
+                              f"{1e3 * gyro_lag_s:.2f} ms (the attitude stamps' rounding)")
+            gyro_lag_s = lag_flow
+            fp = FlowProblem(data, rotation_angles=rotation_angles(data, gyro_lag_s), **kw)
     base = fp
     # the effects' regressors from sources whose noise the residual does not share (``anchor``):
     # the rotation from the gyro, the velocity from the tilt above a low crossover
@@ -780,8 +889,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
         null_pvalue=state.null_pvalue, active_rows=state.active_rows)
     stream = ROTATION_SOURCES[chosen]
     if stream is not None:
-        bound = STAMP_ALIGN_SIGMAS * math.hypot(timing_sigma_s(data, "flow", stream),
-                                                timing_sigma_s(data, "gyro", "attitude") if gyro_lag_s > 0 else 0.0)
+        bound = STAMP_ALIGN_SIGMAS * timing_sigma_s(data, "flow", stream)
         g.nominal[IDX["delay"]] = state.timing_offset_s = _stamp_alignment(g, bound)
         if abs(state.timing_offset_s) >= 1e-5:
             data.notes.append(f"the flow's timing against its rotation source aligned by "
@@ -790,26 +898,48 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
     return g, fp, state
 
 
-#: the flow's timing against its rotation source is aligned within this many sigmas of what the
-#: two streams' stamps leave uncertain (``timing_sigma_s``; with a gyro lag undone, the lag's too)
+#: the flow's timing against its rotation source, and a gyro lag undone in that rotation, are
+#: aligned within this many sigmas of what the stamps leave uncertain (``timing_sigma_s``)
 STAMP_ALIGN_SIGMAS = 2.0
+
+
+def _flow_lag(data: FlightData, lag_s: float, bound_s: float, kw: dict[str, Any]) -> float:
+    """The gyro lag, within +-``bound_s`` of ``lag_s``, whose undoing in the flow's rotation leaves
+    the smallest nominal flow residual: one Gauss-Newton step (central difference of 0.1 ms),
+    clipped.
+
+    Why: the gyro group times the lag against the attitude, whose stamps' rounding shifts it by a
+    fraction of a ms (``timing_sigma_s``), and the flow of a flight whose rotation moves fast is
+    far more sensitive to it: gen_0183 of the generalisation matrix (a 47.06 ms gyro lag only,
+    ArduPilot's ms stamps) had its flow residual 27 % larger undone of 46.8 ms than of 47.1 ms,
+    and named a 7-10 cm range offset beside the lag; a flow delay aligned instead
+    (``_stamp_alignment``) shifts the translation with the rotation and left it at z 3.2."""
+    h = 1e-4
+
+    def flow_rows(lag: float) -> np.ndarray:
+        rot = rotation_angles(data, lag)
+        return FlowProblem(data, rotation_angles=rot, **kw).flow_residual(NOMINAL).ravel()
+
+    r0 = flow_rows(lag_s)
+    j = (flow_rows(lag_s + h) - flow_rows(lag_s - h)) / (2 * h)
+    ok = np.isfinite(r0) & np.isfinite(j)
+    jj = float(j[ok] @ j[ok])
+    if not jj > 0:
+        return lag_s
+    return float(np.clip(lag_s - float(j[ok] @ r0[ok]) / jj, lag_s - bound_s, lag_s + bound_s))
 
 
 def _stamp_alignment(g: Group, bound_s: float) -> float:
     """The flow delay, within +-``bound_s``, that the flow channels ask for at the nominal model:
     one Gauss-Newton step on the whitened flow residual (central difference of 0.1 ms), clipped.
 
-    Why: a timing error between the flow and its rotation source is exactly a flow delay (the
-    rotation compared a little early or late), and stamps in whole ms leave that timing uncertain
-    by a fraction of a ms (two streams: +-0.41 ms at 1 sigma). A gyro lag found by the gyro group
-    is timed against the attitude, not the flow: undone in the rotation, the attitude stamps'
-    rounding becomes such an error too. A flow delay that small is not a finding (under 2 ms,
-    ``sizes``), so it was never fitted, and in a flight whose rotation moves fast the residual it
-    leaves went to another effect: gen_0183 of the generalisation matrix (a 47 ms gyro lag only,
-    ArduPilot's ms stamps) named a 7 cm range offset at z 5.4 once its lag read 0.25 ms nearer the
-    truth, the flow's nominal residual 27 % larger at that lag than at the truth. Aligned here
-    (-0.22 ms), the flight names the lag only. The nominal model carries the alignment; a flow
-    delay is still judged from it and reported as the delay it fits."""
+    Why: a timing error between the flow's stamps and its rotation source's is exactly a flow
+    delay (the rotation compared a little early or late), and stamps in whole ms leave that timing
+    uncertain by a fraction of a ms (``timing_sigma_s``: 0.29 ms for ms against us stamps). A flow
+    delay that small is not a finding (under 2 ms, ``sizes``), so it was never fitted, and in a
+    flight whose rotation moves fast the residual it leaves can go to another effect. The nominal
+    model carries the alignment; a flow delay is still judged from it and reported as the delay it
+    fits. (A gyro lag's own timing, against the attitude, is the gyro's: ``_flow_lag``.)"""
     if not bound_s > 0:
         return 0.0
     k = IDX["delay"]
