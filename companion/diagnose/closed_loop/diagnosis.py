@@ -324,8 +324,8 @@ def fit_blocks(t_s: np.ndarray, span_s: float, block_s: float = FIT_BLOCK_S) -> 
     return ((t >= starts[k]) & (t < starts[k] + block_s)) | (t >= total - block_s)
 
 
-def _check_held_back(held: FlightData, cfg: Config, results: dict[str, GroupResult], gyro_lag_s: float,
-                     fstate: FlowGroupState, report: Report) -> None:
+def _check_held_back(held: FlightData, cfg: Config, results: dict[str, GroupResult], fstate: FlowGroupState,
+                     report: Report) -> None:
     """The fitted model on the frames it was not fitted on (``fit_blocks``): each channel's rms
     there beside the fitted part's, in a note, and every stretch where the model does not fit there
     (its residual over ``MISFIT_TIMES_NOISE`` x the fitted part's noise: a wind, a transient that
@@ -335,8 +335,8 @@ def _check_held_back(held: FlightData, cfg: Config, results: dict[str, GroupResu
     hour's held-back force residual (the bench's 2 h flight)."""
     ga, _ap = attitude_group(held, cfg)
     gg, _gp = gyro_group(held)
-    gf, _fp, st = flow_group(held, cfg, gyro_lag_s=gyro_lag_s, p_anchor=results["flow"].final.p,
-                             source=fstate.source)  # the fit's rotation source
+    gf, _fp, st = flow_group(held, cfg, gyro_lag_s=fstate.lag_s, p_anchor=results["flow"].final.p,
+                             source=fstate.source, refine_lag=False)  # the fit's rotation source and lag
     st.window = fstate.window  # the wind where the fit put it
     said = []
     for g in (ga, gg, gf):
@@ -418,8 +418,9 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
         # with a large geometry effect chosen (a 12 deg yaw, a 20 % scale), its second-order share
         # would be fitted as another effect, so the group is built again about the chosen model and
         # the selection rerun from there (``FlowProblem.anchor``)
-        data.notes[:] = notes + ([fstate.source_note] if fstate.source_note else [])
-        gf, fp, fstate = flow_group(data, cfg, gyro_lag_s=lag, p_anchor=results["flow"].final.p,
+        data.notes[:] = notes + [n for n in (fstate.source_note, fstate.lag_note) if n]
+        gf, fp, fstate = flow_group(data, cfg, gyro_lag_s=fstate.lag_s, refine_lag=False,
+                                    p_anchor=results["flow"].final.p,
                                     source=fstate.source)
         results["flow"] = _fit_group(gf, settings, t0)
     timings["flow_s"] = time.perf_counter() - t
@@ -461,7 +462,7 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
         report.notes.extend(res.selector.notes)
     if held is not None and held.n:
         try:
-            _check_held_back(held, cfg, results, lag, fstate, report)
+            _check_held_back(held, cfg, results, fstate, report)
         except (RecordingError, ValueError) as exc:  # the fit stands; what could not be checked is said
             report.notes.append(f"the held-back {held.duration_s / 60.0:.1f} min could not be checked: {exc}")
     report.findings.sort(key=lambda f: (not f.significant, -(f.fit.improvement_pct if f.fit else 0.0)))

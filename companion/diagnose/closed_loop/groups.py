@@ -388,6 +388,9 @@ class FlowGroupState:
         #: the flow's rotation source (``ROTATION_SOURCES``) and the note that said why, when chosen
         self.source = "attitude"
         self.source_note: str | None = None
+        #: the gyro lag undone in the flow's rotation (``_flow_lag``) and the note that said so
+        self.lag_s = 0.0
+        self.lag_note: str | None = None
         #: the flow delay the group's nominal model carries: the flow's timing against its
         #: rotation source, aligned within what the stamps leave uncertain (``_stamp_alignment``)
         self.timing_offset_s = 0.0
@@ -763,7 +766,7 @@ ROTATION_SOURCES: dict[str, str | None] = {"attitude": "attitude", "gyro": "gyro
 
 
 def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor: np.ndarray | None = None,
-               source: str | None = None) -> tuple[Group, FlowProblem, FlowGroupState]:
+               source: str | None = None, refine_lag: bool = True) -> tuple[Group, FlowProblem, FlowGroupState]:
     """The flow group, its rotation taken from the source that explains the recorded flow better:
     the attitude estimate, or the gyro fused with it (``rotation_angles``), or the flow message's
     own body rate. The flow sees the true rotation, so the source nearer the truth leaves the
@@ -771,7 +774,9 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
     (``FlowGroupState.source``). ``source`` (one of ``ROTATION_SOURCES``): take that one without
     choosing, and say nothing of it (the group rebuilt about an anchor, whose choice would be the
     same; the part of a long flight held back from the fit, judged with the fit's source); when
-    this flight has no such source, the choice is made."""
+    this flight has no such source, the choice is made. ``refine_lag``: the gyro lag undone in the
+    gyro's rotation is timed for the flow (``_flow_lag``; the lag used is ``FlowGroupState.lag_s``);
+    False: ``gyro_lag_s`` as it is (the group rebuilt, or the held-back part, with the fit's lag)."""
     if source is not None and source not in ROTATION_SOURCES:
         raise ValueError(f"flow_group: no rotation source {source!r} (one of {', '.join(ROTATION_SOURCES)})")
     kw: dict[str, Any] = dict(mass_kg=cfg.airframe.mass_kg, gravity_m_s2=cfg.airframe.gravity_m_s2)
@@ -813,13 +818,16 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
                            f"{force[0]:.3g} N from the attitude estimate)")
             data.notes.append(source_note)
     lag_sigma = timing_sigma_s(data, "gyro", "attitude")
-    if chosen == "gyro" and gyro_lag_s > 0 and lag_sigma > 0:
+    lag_in = gyro_lag_s
+    lag_note = None
+    if refine_lag and chosen == "gyro" and gyro_lag_s > 0 and lag_sigma > 0:
         # the lag was timed against the attitude; the flow sees the rotation on its own time
-        lag_flow = _flow_lag(data, gyro_lag_s, STAMP_ALIGN_SIGMAS * lag_sigma, kw)
+        lag_flow = _flow_lag(fp, data, gyro_lag_s, STAMP_ALIGN_SIGMAS * lag_sigma, kw)
         if abs(lag_flow - gyro_lag_s) >= 1e-5:
-            data.notes.append(f"the gyro lag undone in the flow's rotation: {1e3 * lag_flow:.2f} ms, what the flow "
-                              f"asks for within +-{1e3 * STAMP_ALIGN_SIGMAS * lag_sigma:.2f} ms of the gyro group's "
-                              f"{1e3 * gyro_lag_s:.2f} ms (the attitude stamps' rounding)")
+            lag_note = (f"the gyro lag undone in the flow's rotation: {1e3 * lag_flow:.2f} ms, what the flow "
+                        f"asks for within +-{1e3 * STAMP_ALIGN_SIGMAS * lag_sigma:.2f} ms of the gyro group's "
+                        f"{1e3 * gyro_lag_s:.2f} ms (the attitude stamps' rounding)")
+            data.notes.append(lag_note)
             gyro_lag_s = lag_flow
             fp = FlowProblem(data, rotation_angles=rotation_angles(data, gyro_lag_s), **kw)
     base = fp
@@ -850,6 +858,8 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
                           f"is the loop's answer to the flow's own rounding")
     state = FlowGroupState(fp)
     state.source, state.source_note = chosen, source_note
+    state.lag_s = gyro_lag_s if chosen == "gyro" else lag_in
+    state.lag_note = lag_note
     e0 = base.flow_residual(p_a)
     whiten = state.whiten = [ar_whitener(e0[0]), ar_whitener(e0[1])]
     state.n_flow_rows = fp.flow.idx.shape[0] * max(fp.flow.idx.shape[1] - WHITEN_ORDER, 0)
@@ -903,9 +913,10 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
 STAMP_ALIGN_SIGMAS = 2.0
 
 
-def _flow_lag(data: FlightData, lag_s: float, bound_s: float, kw: dict[str, Any]) -> float:
+def _flow_lag(fp: FlowProblem, data: FlightData, lag_s: float, bound_s: float, kw: dict[str, Any]) -> float:
     """The gyro lag, within +-``bound_s`` of ``lag_s``, whose undoing in the flow's rotation leaves
-    the smallest nominal flow residual: one Gauss-Newton step (central difference of 0.1 ms),
+    the smallest nominal flow residual: one Gauss-Newton step from ``fp`` (the flow problem with
+    ``lag_s`` undone; a one-sided difference of 0.1 ms, the rotation being linear in the lag),
     clipped.
 
     Why: the gyro group times the lag against the attitude, whose stamps' rounding shifts it by a
@@ -920,8 +931,8 @@ def _flow_lag(data: FlightData, lag_s: float, bound_s: float, kw: dict[str, Any]
         rot = rotation_angles(data, lag)
         return FlowProblem(data, rotation_angles=rot, **kw).flow_residual(NOMINAL).ravel()
 
-    r0 = flow_rows(lag_s)
-    j = (flow_rows(lag_s + h) - flow_rows(lag_s - h)) / (2 * h)
+    r0 = fp.flow_residual(NOMINAL).ravel()
+    j = (flow_rows(lag_s + h) - r0) / h
     ok = np.isfinite(r0) & np.isfinite(j)
     jj = float(j[ok] @ j[ok])
     if not jj > 0:
