@@ -236,9 +236,7 @@ class LagEstimate:
 
     tau_s: float
     sd_s: float  #: the sandwich's, with the stamps' timing in quadrature
-    bias_rad_s: tuple[float, float]
-    first_stage_f: float
-    n_rows: int
+    first_stage_f: float  #: the weaker axis's
 
 
 def lag_by_instruments(gp: GyroProblem, data: FlightData, block_s: float, timing_s: float) -> LagEstimate | None:
@@ -273,7 +271,7 @@ def lag_by_instruments(gp: GyroProblem, data: FlightData, block_s: float, timing
     if len(rows) < 100:
         return None
     l0, l1, h0, h1 = lo[rows], lo[rows] + 1, hi[rows] - 1, hi[rows]
-    y_all, x_all, xh_all, axis_all, time_all = [], [], [], [], []
+    y_all, x_all, xh_all, time_all = [], [], [], []
     f_min = math.inf
     for i in (0, 1):
         g = gyr[i]
@@ -297,7 +295,6 @@ def lag_by_instruments(gp: GyroProblem, data: FlightData, block_s: float, timing
         y_all.append(w * y)
         x_all.append(np.stack([w * x, w * (i == 0) * np.ones_like(x), w * (i == 1) * np.ones_like(x)], axis=1))
         xh_all.append(np.stack([w * xh, w * (i == 0) * np.ones_like(x), w * (i == 1) * np.ones_like(x)], axis=1))
-        axis_all.append(np.full(len(x), i))
         time_all.append(gp.t_s[rows][fin])
     if not f_min >= IV_MIN_F:
         return None
@@ -317,8 +314,7 @@ def lag_by_instruments(gp: GyroProblem, data: FlightData, block_s: float, timing
     B = len(sb)
     cov = Ai @ S @ Ai.T * B / max(B - 3, 1)
     sd = math.sqrt(max(float(cov[0, 0]), 0.0) + timing_s ** 2)
-    return LagEstimate(tau_s=float(beta[0]), sd_s=sd, bias_rad_s=(-float(beta[1]), -float(beta[2])),
-                       first_stage_f=float(f_min), n_rows=len(Y))
+    return LagEstimate(tau_s=float(beta[0]), sd_s=sd, first_stage_f=float(f_min))
 
 
 def timing_sigma_s(data: FlightData, a: str, b: str) -> float:
@@ -818,7 +814,6 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
                            f"{force[0]:.3g} N from the attitude estimate)")
             data.notes.append(source_note)
     lag_sigma = timing_sigma_s(data, "gyro", "attitude")
-    lag_in = gyro_lag_s
     lag_note = None
     if refine_lag and chosen == "gyro" and gyro_lag_s > 0 and lag_sigma > 0:
         # the lag was timed against the attitude; the flow sees the rotation on its own time
@@ -858,7 +853,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
                           f"is the loop's answer to the flow's own rounding")
     state = FlowGroupState(fp)
     state.source, state.source_note = chosen, source_note
-    state.lag_s = gyro_lag_s if chosen == "gyro" else lag_in
+    state.lag_s = gyro_lag_s
     state.lag_note = lag_note
     e0 = base.flow_residual(p_a)
     whiten = state.whiten = [ar_whitener(e0[0]), ar_whitener(e0[1])]
@@ -932,12 +927,7 @@ def _flow_lag(fp: FlowProblem, data: FlightData, lag_s: float, bound_s: float, k
         return FlowProblem(data, rotation_angles=rot, **kw).flow_residual(NOMINAL).ravel()
 
     r0 = fp.flow_residual(NOMINAL).ravel()
-    j = (flow_rows(lag_s + h) - r0) / h
-    ok = np.isfinite(r0) & np.isfinite(j)
-    jj = float(j[ok] @ j[ok])
-    if not jj > 0:
-        return lag_s
-    return float(np.clip(lag_s - float(j[ok] @ r0[ok]) / jj, lag_s - bound_s, lag_s + bound_s))
+    return _clipped_step(lag_s, r0, (flow_rows(lag_s + h) - r0) / h, bound_s)
 
 
 def _stamp_alignment(g: Group, bound_s: float) -> float:
@@ -962,10 +952,14 @@ def _stamp_alignment(g: Group, bound_s: float) -> float:
         r = g.residuals(p)
         return np.concatenate([r[0], r[1]])
 
-    r0 = flow_rows(0.0)
-    j = (flow_rows(h) - flow_rows(-h)) / (2 * h)
+    return _clipped_step(0.0, flow_rows(0.0), (flow_rows(h) - flow_rows(-h)) / (2 * h), bound_s)
+
+
+def _clipped_step(x0: float, r0: np.ndarray, j: np.ndarray, bound_s: float) -> float:
+    """One Gauss-Newton step of one parameter from ``x0`` (residual ``r0``, its derivative ``j``,
+    over their finite rows), kept within +-``bound_s`` of ``x0``; ``x0`` when ``j`` is nil."""
     ok = np.isfinite(r0) & np.isfinite(j)
     jj = float(j[ok] @ j[ok])
     if not jj > 0:
-        return 0.0
-    return float(np.clip(-float(j[ok] @ r0[ok]) / jj, -bound_s, bound_s))
+        return x0
+    return float(np.clip(x0 - float(j[ok] @ r0[ok]) / jj, x0 - bound_s, x0 + bound_s))
