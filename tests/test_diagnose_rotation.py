@@ -381,27 +381,33 @@ def test_a_tie_between_rotation_sources_goes_to_the_gyro(gyro_noise):
     assert state3.source == state.source
 
 
-def _lagging_loop(imu_lead_s: float, tau_s: float, n_frames: int = 1500, frame_s: float = 0.02,
-                  h_s: float = 2e-4) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """A second-order attitude loop (omega 12 rad/s, zeta 0.8) answering a new command at every
-    frame (kinks in the rate there), its gyro a first-order low-pass (tau_s) of the rate sampled
-    ``imu_lead_s`` before each frame, the attitude exact at the frames: (frame times, attitude,
-    gyro sample times, gyro samples)."""
-    rng = np.random.default_rng(3)
+def _loop(cmd: np.ndarray, tau_s: float, frame_s: float, h_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A second-order attitude loop (omega 12 rad/s, zeta 0.8) answering ``cmd`` (one command per
+    frame, so its rate kinks at the frames), its gyro a first-order low-pass (tau_s) of the rate,
+    integrated at ``h_s`` (the rate exact, its derivative constant over a step): (the frames'
+    step indices, attitude and gyro at every step)."""
     per = int(round(frame_s / h_s))
-    u = np.repeat(0.05 * rng.standard_normal(n_frames), per)
+    u = np.repeat(cmd, per)
     w, z = 12.0, 0.8
     th = q = g = 0.0
     th_all, g_all = np.empty(len(u)), np.empty(len(u))
-    for i in range(len(u)):  # the rate is exact, its derivative constant over a step
+    for i in range(len(u)):
         th_all[i], g_all[i] = th, g
         dq = w * w * (u[i] - th) - 2 * z * w * q
         g_new = g + h_s * (q + 0.5 * h_s * dq - g) / tau_s
         th, q, g = th + h_s * q + 0.5 * h_s * h_s * dq, q + h_s * dq, g_new
-    k = np.arange(0, len(u), per)[5:-5]
-    t = k * h_s
+    return np.arange(0, len(u), per)[5:-5], th_all, g_all
+
+
+def _lagging_loop(imu_lead_s: float, tau_s: float, n_frames: int = 1500, frame_s: float = 0.02,
+                  h_s: float = 2e-4) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``_loop`` answering a new random command at every frame, its gyro sampled ``imu_lead_s``
+    before each frame, the attitude exact at the frames: (frame times, attitude, gyro sample
+    times, gyro samples)."""
+    rng = np.random.default_rng(3)
+    k, th_all, g_all = _loop(0.05 * rng.standard_normal(n_frames), tau_s, frame_s, h_s)
     kg = k - int(round(imu_lead_s / h_s))
-    return t, th_all[k], kg * h_s, g_all[kg]
+    return k * h_s, th_all[k], kg * h_s, g_all[kg]
 
 
 def _fitted_lag_s(t: np.ndarray, att: np.ndarray, t_gyro: np.ndarray, gyro: np.ndarray, spline: bool) -> float:
@@ -439,8 +445,6 @@ class _LinearDelayGroup:
     ``d_true``), the two force channels empty."""
 
     def __init__(self, d_true: float) -> None:
-        from companion.diagnose.closed_loop.flowmodel import NOMINAL
-
         self.nominal = NOMINAL.copy()
         rng = np.random.default_rng(1)
         self.x = rng.standard_normal((2, 400))
@@ -487,25 +491,15 @@ def test_a_lag_timed_against_the_attitude_leaves_no_false_range_offset(tmp_path)
 
 def _smooth_loop(tau_s: float, amp_rad: float, n_frames: int = 3000, frame_s: float = 0.02,
                  h_s: float = 2e-4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The loop of ``_lagging_loop`` answering a smooth command (white noise through a 1 Hz
-    second-order low-pass, ``amp_rad`` rms, held over each frame), as a hover's corrections are:
-    (frame times, attitude, lagging gyro), both at the frames."""
+    """``_loop`` answering a smooth command (white noise through a 1 Hz second-order low-pass,
+    ``amp_rad`` rms, held over each frame), as a hover's corrections are: (frame times, attitude,
+    lagging gyro), both at the frames."""
     from scipy.signal import butter, lfilter
 
     rng = np.random.default_rng(3)
     b, a = butter(2, 1.0 / 25.0)
     cmd = lfilter(b, a, rng.standard_normal(n_frames + 200))[200:]
-    per = int(round(frame_s / h_s))
-    u = np.repeat(amp_rad * cmd / np.std(cmd), per)
-    w, z = 12.0, 0.8
-    th = q = g = 0.0
-    th_all, g_all = np.empty(len(u)), np.empty(len(u))
-    for i in range(len(u)):
-        th_all[i], g_all[i] = th, g
-        dq = w * w * (u[i] - th) - 2 * z * w * q
-        g_new = g + h_s * (q + 0.5 * h_s * dq - g) / tau_s
-        th, q, g = th + h_s * q + 0.5 * h_s * h_s * dq, q + h_s * dq, g_new
-    k = np.arange(0, len(u), per)[5:-5]
+    k, th_all, g_all = _loop(amp_rad * cmd / np.std(cmd), tau_s, frame_s, h_s)
     return k * h_s, th_all[k], g_all[k]
 
 
