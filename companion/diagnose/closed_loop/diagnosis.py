@@ -36,7 +36,14 @@ from companion.diagnose.closed_loop.groups import (
     lag_by_instruments,
     lever_arm_observable,
 )
-from companion.diagnose.closed_loop.locate import Interval, conditions, effect_windows, excess_windows
+from companion.diagnose.closed_loop.locate import (
+    Interval,
+    conditions,
+    effect_windows,
+    excess_windows,
+    typical_window_rms,
+    white_noise,
+)
 from companion.diagnose.closed_loop.select import Comparison, Group, ModelScore, Selector, Settings
 from companion.diagnose.closed_loop.sparse import SparseFit, Term, sparse_fit
 from companion.diagnose.report import Finding, Fit, Report, Unexplained, Window
@@ -348,14 +355,17 @@ def _check_held_back(held: FlightData, cfg: Config, results: dict[str, GroupResu
             fitted = res.r_final[c][np.isfinite(res.r_final[c])]
             if not len(x) or not len(fitted):
                 continue
-            sigma = float(res.selector.sigma[c])
+            # the fitted part's noise: its robust scale, or its white part's rms where larger
+            sigma = max(float(res.selector.sigma[c]), white_noise(res.group.row_times[c], res.r_final[c]))
+            if g.coloured and g.coloured[c]:
+                sigma = max(sigma, typical_window_rms(res.group.row_times[c], res.r_final[c]))
             said.append(f"{ch} {float(np.sqrt(np.mean(x ** 2))):.3g} ({float(np.sqrt(np.mean(fitted ** 2))):.3g})")
             # windows of at least ten rows (the force channel has one a second)
             width = max(5.0, 10.0 * float(np.ptp(tt)) / max(len(tt) - 1, 1))
             for iv in excess_windows(tt, x, sigma, factor=MISFIT_TIMES_NOISE, width_s=width, step_s=0.5 * width):
                 report.unexplained.append(Unexplained(ch, iv.start_s, iv.end_s, iv.rms,
                                                       "no candidate term fits (a local disturbance, in the part "
-                                                      "held back from the fit)", sigma))
+                                                      "held back from the fit)", iv.noise))
     report.notes.append(f"the held-back {held.duration_s / 60.0:.1f} min, not fitted: the fitted model's residual "
                         f"rms there (on the fitted part) {', '.join(said)}")
 
@@ -565,6 +575,8 @@ def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProb
         if len(r) == 0:
             continue
         sigma = float(sel.sigma[c])
+        if g.coloured and g.coloured[c]:  # a window of coloured noise is judged against its typical one too
+            sigma = max(sigma, typical_window_rms(tt, r))
         res.mismatch_windows[ch] = excess_windows(tt, res.r_nominal[c], sigma)
         windows = excess_windows(tt, r, sigma)
         res.unexplained_windows[ch] = windows
@@ -577,10 +589,12 @@ def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProb
                       and math.sqrt(sp.r2_heldout) * rms > g.floors[c])
         best_text = sp.describe(g.units[c]) if (sp is not None and structured) else None
         if structured and not windows:
-            report.unexplained.append(Unexplained(ch, float(tt.min()), float(tt.max()), rms, best_text, sigma))
+            report.unexplained.append(Unexplained(ch, float(tt.min()), float(tt.max()), rms, best_text,
+                                                  max(sigma, white_noise(tt, r))))
         for iv in windows:
             report.unexplained.append(Unexplained(ch, iv.start_s, iv.end_s, iv.rms,
-                                                  best_text or "no candidate term fits (a local disturbance)", sigma))
+                                                  best_text or "no candidate term fits (a local disturbance)",
+                                                  iv.noise))
 
 
 def headline(report: Report) -> str:

@@ -155,7 +155,7 @@ def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProble
         steps=np.array([0.005 * wp, 0.005, 0.0005]), lower=np.array([0.3, 0.05, -T]),
         upper=np.array([80.0, 5.0, ATTITUDE_DELAY_MAX_S]), channels=("attitude_roll", "attitude_pitch"),
         units=("rad", "rad"),
-        floors=(1e-4, 1e-4), residuals=residuals, row_times=[tr, tr],
+        floors=(1e-4, 1e-4), residuals=residuals, row_times=[tr, tr], coloured=(True, True),
         candidates=[Candidate("attitude_dynamics", ("omega_p", "zeta"),
                               matters=threshold("attitude_dynamics", {"omega_p": wp, "zeta": z})),
                     Candidate("attitude_delay", ("delay",), matters=threshold("attitude_delay"))] if assessed else [])

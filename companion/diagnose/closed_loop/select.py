@@ -158,6 +158,11 @@ class Group:
     #: to it, or, when it is not fitted, what that shift of it moves the fitted ones by
     #: (``Selector._cov``)
     timing: tuple[str, float] | None = None
+    #: per channel, whether its noise is coloured (an estimator's output, correlated over a good
+    #: part of a second): a window of it stands above the noise's rms by chance far more often than
+    #: white noise's, and ``diagnosis`` judges it against the flight's typical window as well
+    #: (``locate.typical_window_rms``); none when empty
+    coloured: tuple[bool, ...] = ()
 
     def index(self, names: Sequence[str]) -> list[int]:
         return [self.params.index(n) for n in names]
