@@ -3,8 +3,9 @@
 ``excess_windows`` marks sliding windows whose residual RMS is above a multiple of the channel's
 noise (its robust scale, or what the residual's own row-to-row changes give over the flight and
 in the window: ``white_part``) and merges them into intervals; ``effect_windows`` does the same
-for the part of the residual an effect explains (its contribution). ``conditions`` bins a residual by operating
-condition (speed, tilt, rate, altitude) so a report can say *when* the model fails.
+for the part of the residual an effect explains (its contribution). ``conditions`` bins a
+residual by operating condition (speed, tilt, rate, altitude) so a report can say *when* the
+model fails.
 """
 
 from __future__ import annotations
