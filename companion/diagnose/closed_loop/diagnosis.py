@@ -355,10 +355,7 @@ def _check_held_back(held: FlightData, cfg: Config, results: dict[str, GroupResu
             fitted = res.r_final[c][np.isfinite(res.r_final[c])]
             if not len(x) or not len(fitted):
                 continue
-            # the fitted part's noise: its robust scale, or its white part's rms where larger
-            sigma = max(float(res.selector.sigma[c]), white_noise(res.group.row_times[c], res.r_final[c]))
-            if g.coloured and g.coloured[c]:
-                sigma = max(sigma, typical_window_rms(res.group.row_times[c], res.r_final[c]))
+            sigma = _stretch_noise(res, c)  # the fitted part's
             said.append(f"{ch} {float(np.sqrt(np.mean(x ** 2))):.3g} ({float(np.sqrt(np.mean(fitted ** 2))):.3g})")
             # windows of at least ten rows (the force channel has one a second)
             width = max(5.0, 10.0 * float(np.ptp(tt)) / max(len(tt) - 1, 1))
@@ -565,6 +562,18 @@ def _finding(effect: str, comp: Comparison, res: GroupResult, data: FlightData, 
                    evidence=evidence)
 
 
+def _stretch_noise(res: GroupResult, c: int) -> float:
+    """Channel c's noise over the whole fit, for the stretch test (``locate.excess_windows``, which
+    takes the window's own white part beside it): the selector's robust scale, or the final
+    residual's white part where larger (noise with heavy tails), or, for a channel whose noise is
+    coloured (``Group.coloured``), its typical window where larger still."""
+    t, r = res.group.row_times[c], res.r_final[c]
+    sigma = max(float(res.selector.sigma[c]), white_noise(t, r))
+    if res.group.coloured and res.group.coloured[c]:
+        sigma = max(sigma, typical_window_rms(t, r))
+    return sigma
+
+
 def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProblem, gp: GyroProblem,
                  fp: FlowProblem, fstate: FlowGroupState, settings: Settings, report: Report) -> None:
     g = res.group
@@ -574,9 +583,7 @@ def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProb
         tt = g.row_times[c]
         if len(r) == 0:
             continue
-        sigma = float(sel.sigma[c])
-        if g.coloured and g.coloured[c]:  # a window of coloured noise is judged against its typical one too
-            sigma = max(sigma, typical_window_rms(tt, r))
+        sigma = _stretch_noise(res, c)
         res.mismatch_windows[ch] = excess_windows(tt, res.r_nominal[c], sigma)
         windows = excess_windows(tt, r, sigma)
         res.unexplained_windows[ch] = windows
@@ -589,8 +596,7 @@ def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProb
                       and math.sqrt(sp.r2_heldout) * rms > g.floors[c])
         best_text = sp.describe(g.units[c]) if (sp is not None and structured) else None
         if structured and not windows:
-            report.unexplained.append(Unexplained(ch, float(tt.min()), float(tt.max()), rms, best_text,
-                                                  max(sigma, white_noise(tt, r))))
+            report.unexplained.append(Unexplained(ch, float(tt.min()), float(tt.max()), rms, best_text, sigma))
         for iv in windows:
             report.unexplained.append(Unexplained(ch, iv.start_s, iv.end_s, iv.rms,
                                                   best_text or "no candidate term fits (a local disturbance)",
