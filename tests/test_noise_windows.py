@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from companion.config import load_config
-from companion.diagnose.closed_loop.diagnosis import diagnose
+from companion.diagnose.closed_loop.diagnosis import MISFIT_TIMES_NOISE, diagnose
 from companion.diagnose.closed_loop.locate import (
     excess_windows,
     typical_window_rms,
@@ -182,3 +182,45 @@ def test_a_gyro_scale_error_on_a_clean_flight_is_still_said(tmp_path, monkeypatc
     named = [float(u.best_term.split()[0]) for u in rep.unexplained
              if u.channel.startswith("gyro_") and u.best_term and "gyro scale-factor error" in u.best_term]
     assert named and all(abs(k - 0.05) <= 0.01 for k in named)
+
+
+def test_a_misfit_in_every_window_of_a_coloured_channel_is_not_its_noise():
+    """An attitude residual that is 0.98 x the tracking error over the whole flight (a lossy
+    ground-station log of ArduCopter SITL flight C0, its attitude model lost with its commands)
+    plus noise correlated over 0.9 s of a tenth its size. The tracking error is the loop's answer to
+    a command step every 2.5 s (rising for 0.15 s, then settling), so the misfit is in every window and the MAD,
+    taken mostly between the steps, is far under it. Its typical window is the misfit itself, so
+    against it nothing stands out; the sparse fit names the term, and the typical window of what
+    it leaves is the noise's (``diagnosis._stretch_noise``), against which the misfit stands
+    above 3 x (the headline's "does not fit")."""
+    from types import SimpleNamespace
+
+    from companion.diagnose.closed_loop.diagnosis import _stretch_noise
+    from companion.diagnose.closed_loop.sparse import Term, sparse_fit
+
+    rng = np.random.default_rng(6)
+    t = _times(200.0)
+    steps = np.arange(1.0, 200.0, 2.5)
+    k = np.searchsorted(steps, t, side="right") - 1
+    since = np.where(k >= 0, t - steps[np.maximum(k, 0)], 0.0)
+    amp = rng.uniform(-0.1, 0.1, len(steps))[np.maximum(k, 0)]
+    error = np.where(k >= 0, amp * (since / 0.15) * np.exp(1.0 - since / 0.15), 0.0)
+    a = math.exp(-FRAME_S / 0.9)
+    w = rng.standard_normal(len(t)) * math.sqrt(1 - a * a) * 0.1 * math.sqrt(np.mean(error ** 2))
+    noise = np.zeros(len(t))
+    for i in range(1, len(t)):
+        noise[i] = a * noise[i - 1] + w[i]
+    r = 0.98 * error + noise
+    folds = (t // 5.0).astype(int) % 8
+    group = SimpleNamespace(row_times=[t], channels=("attitude_roll",), coloured=(True,), floors=(1e-4,))
+    res = SimpleNamespace(group=group, r_final=[r], selector=SimpleNamespace(sigma=np.array([robust_std(r)])),
+                          sparse={})
+    assert robust_std(r) < 0.5 * typical_window_rms(t, r)
+    alone = _stretch_noise(res, 0)  # the typical window of the residual itself
+    assert alone == pytest.approx(typical_window_rms(t, r))
+    assert all(iv.rms / iv.noise < 3.0 for iv in excess_windows(t, r, alone))
+    res.sparse["attitude_roll"] = sparse_fit(r, [Term("tracking error", "", "rad", error)], folds, 8)
+    left = _stretch_noise(res, 0)
+    assert left == pytest.approx(max(typical_window_rms(t, noise), robust_std(r), white_noise(t, r)), rel=0.2)
+    found = excess_windows(t, r, left)
+    assert found and max(iv.rms / iv.noise for iv in found) > MISFIT_TIMES_NOISE  # 5.8 here

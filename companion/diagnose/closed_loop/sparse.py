@@ -40,6 +40,15 @@ class SparseFit:
     best_coef: float
     best_r2_heldout: float  # the best term alone, held out
 
+    def predict(self, n_rows: int) -> np.ndarray:
+        """The sparse model's part of the residual, per row of the residual it was fitted to (a
+        term's non-finite rows count 0; all 0 without terms)."""
+        out = np.zeros(n_rows)
+        for k, t in zip(self.coef, self.terms, strict=True):
+            if k:
+                out += k * np.nan_to_num(t.values)
+        return out
+
     def describe(self, residual_unit: str) -> str | None:
         if self.best is None:
             return None
