@@ -178,6 +178,35 @@ def test_a_stall_inside_a_step_does_not_send_its_old_command(flying):
     assert live.counters["companion stalls"] == 1
 
 
+def test_a_stall_while_a_step_is_written_does_not_send_its_old_command(flying, monkeypatch):
+    """The process stops after the step's age was checked and before its messages are written:
+    while they are built and packed (``tests/test_stall_e2e.py`` met it in a bare-clone run after
+    the check above was in place: the first command after the stall computed from a frame 2.02 s
+    old; building and packing three messages is a few hundred microseconds of each 20 ms step).
+    The age is checked last, after packing, so that command is not sent either, and the sequence
+    numbers it took are given back (the vehicle sees no packet lost)."""
+    fl, live, _console = flying
+    n_sent = len(fl.written)
+    build = outbound.set_attitude_target
+    stalled = []
+
+    def stall_while_building(*args, **kwargs):
+        if not stalled:
+            stalled.append(True)
+            fl.stall(2.0)  # stopped here: the clock runs, the vehicle queues 100 frames
+        return build(*args, **kwargs)
+
+    monkeypatch.setattr(outbound, "set_attitude_target", stall_while_building)
+    fl.fly(5)
+    assert stalled
+    sent = fl.commands(n_sent)
+    ages = [t - m.time_boot_ms * 1e-3 - (fl.clock - fl.sim.t_s) for t, m in sent]
+    assert sent and max(ages) < CFG.companion.flow_timeout_s, ages
+    assert live.counters["commands not sent (stalled inside the step)"] == 1
+    seqs = [m.get_seq() for _t, m in fl.written[n_sent - 1:]]
+    assert all((b - a) % 256 == 1 for a, b in zip(seqs, seqs[1:], strict=False)), seqs
+
+
 def test_a_backlog_on_the_link_is_dropped_by_age(flying):
     """Ten frames held upstream (a router that stalled) come at once: the companion was never
     stopped, so no stall is named; the frames more than two frame periods behind the newest are

@@ -408,9 +408,15 @@ class LiveCompanion:
 
     # -- sending -------------------------------------------------------------------------
 
-    def _send(self, *msgs: Any) -> None:
-        """Pack ``msgs`` in order and write them in one go (one datagram on UDP)."""
+    def _send(self, *msgs: Any, taken_up_s: float | None = None) -> None:
+        """Pack ``msgs`` in order and write them in one go (one datagram on UDP). ``taken_up_s``: a
+        step's messages, whose frame was taken up then; they are not written when the process
+        stopped for longer than ``flow_timeout_s`` since (a SIGSTOP or a swap that fell inside the
+        step: they would fly a frame that old), and the sequence numbers they took are given back.
+        Checked last, after packing, just before the write: a stop can fall anywhere in the step,
+        and building and packing them is a few hundred microseconds of it."""
         enc = self.conn.mav
+        before = (enc.seq, enc.total_packets_sent, enc.total_bytes_sent)
         bufs = []
         for msg in msgs:
             buf = bytes(msg.pack(enc))
@@ -418,6 +424,10 @@ class LiveCompanion:
             enc.total_packets_sent += 1
             enc.total_bytes_sent += len(buf)
             bufs.append(buf)
+        if taken_up_s is not None and self.clock() - taken_up_s > self.cfg.companion.flow_timeout_s:
+            enc.seq, enc.total_packets_sent, enc.total_bytes_sent = before
+            self.counters["commands not sent (stalled inside the step)"] += 1
+            return
         try:
             self.conn.write(b"".join(bufs))
         except Exception:  # noqa: BLE001 - a full buffer or a gone serial port must not stop the loop
@@ -444,13 +454,9 @@ class LiveCompanion:
     def _send_step(self, c: Command, taken_up_s: float | None = None) -> None:
         """POSITION_TARGET_LOCAL_NED, VISION_SPEED_ESTIMATE (with an estimate), then SET_ATTITUDE_TARGET,
         in one datagram, in MAVLink's units. A step's command (``taken_up_s``: the clock when its
-        frame was taken up) is not sent when the process stopped between then and here for longer
-        than ``flow_timeout_s`` (a SIGSTOP or a swap that fell inside the step): it would fly a
-        frame that old; the main loop then sees the stall and resumes from the newest frame
-        (``_on_stall``). The watchdog's level commands are always sent."""
-        if taken_up_s is not None and self.clock() - taken_up_s > self.cfg.companion.flow_timeout_s:
-            self.counters["commands not sent (stalled inside the step)"] += 1
-            return
+        frame was taken up) is not sent when the process stopped between then and its write for
+        longer than ``flow_timeout_s`` (``_send``); the main loop then sees the stall and resumes
+        from the newest frame (``_on_stall``). The watchdog's level commands are always sent."""
         ms = int(round(c.time_s * 1e3)) if math.isfinite(c.time_s) else 0
         enc = self.conn.mav
         msgs = [outbound.position_target(enc, ms, c.vx_set_m_s, c.vy_set_m_s)]
@@ -458,7 +464,7 @@ class LiveCompanion:
             msgs.append(outbound.vision_speed(enc, int(round(c.time_s * 1e6)), *c.estimate))
         msgs.append(outbound.set_attitude_target(enc, ms, self.router.vehicle_sysid or 1, c.roll_rad, c.pitch_rad,
                                                  c.yaw_rad, self.vehicle_compid))
-        self._send(*msgs)
+        self._send(*msgs, taken_up_s=taken_up_s)
 
     def _statustext(self, text: str, severity: int, console: str | None = None) -> None:
         """Say ``text`` to the ground station (STATUSTEXT from component 191, rate limited by
