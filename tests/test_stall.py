@@ -151,6 +151,15 @@ def test_a_stall_is_not_replayed(flying):
     assert len(fl.commands(n_sent)) == 11
 
 
+def _no_command_from_the_stalled_step(fl, live, n_sent: int) -> None:
+    """Every command sent since ``n_sent`` flies a frame under ``flow_timeout_s`` old (by the
+    simulator's clock), and the stalled step's command was the one not sent."""
+    sent = fl.commands(n_sent)
+    ages = [t - m.time_boot_ms * 1e-3 - (fl.clock - fl.sim.t_s) for t, m in sent]
+    assert sent and max(ages) < CFG.companion.flow_timeout_s, ages
+    assert live.counters["commands not sent (stalled inside the step)"] == 1
+
+
 def test_a_stall_inside_a_step_does_not_send_its_old_command(flying):
     """The process stops after a frame is taken up and before its command is written (a SIGSTOP
     that falls inside the step: ``tests/test_stall_e2e.py`` met it once in a CI run, a command
@@ -171,10 +180,7 @@ def test_a_stall_inside_a_step_does_not_send_its_old_command(flying):
     live._emit = stall_inside
     fl.fly(5)
     assert stalled
-    sent = fl.commands(n_sent)
-    ages = [t - m.time_boot_ms * 1e-3 - (fl.clock - fl.sim.t_s) for t, m in sent]
-    assert sent and max(ages) < CFG.companion.flow_timeout_s, ages
-    assert live.counters["commands not sent (stalled inside the step)"] == 1
+    _no_command_from_the_stalled_step(fl, live, n_sent)
     assert live.counters["companion stalls"] == 1
 
 
@@ -199,10 +205,7 @@ def test_a_stall_while_a_step_is_written_does_not_send_its_old_command(flying, m
     monkeypatch.setattr(outbound, "set_attitude_target", stall_while_building)
     fl.fly(5)
     assert stalled
-    sent = fl.commands(n_sent)
-    ages = [t - m.time_boot_ms * 1e-3 - (fl.clock - fl.sim.t_s) for t, m in sent]
-    assert sent and max(ages) < CFG.companion.flow_timeout_s, ages
-    assert live.counters["commands not sent (stalled inside the step)"] == 1
+    _no_command_from_the_stalled_step(fl, live, n_sent)
     seqs = [m.get_seq() for _t, m in fl.written[n_sent - 1:]]
     assert all((b - a) % 256 == 1 for a, b in zip(seqs, seqs[1:], strict=False)), seqs
 
