@@ -26,7 +26,7 @@ from companion.diagnose import filters
 from companion.diagnose.closed_loop.attitude import AttitudeProblem
 from companion.diagnose.closed_loop.channels import FlightData
 from companion.diagnose.closed_loop.flowmodel import AXIS_SIGN, IDX, NOMINAL, PARAMS, FlowProblem
-from companion.diagnose.closed_loop.select import Candidate, Group, robust_std
+from companion.diagnose.closed_loop.select import Candidate, Group, block_meat, robust_std
 from companion.diagnose.closed_loop.sizes import threshold
 from companion.diagnose.closed_loop.wind import WindWindow, kernel_regressor, locate, null_pvalue
 
@@ -306,10 +306,7 @@ def lag_by_instruments(gp: GyroProblem, data: FlightData, block_s: float, timing
     blk = np.floor((ts - ts.min()) / block_s).astype(int)
     sb = np.zeros((blk.max() + 1, 3))
     np.add.at(sb, blk, XH * u[:, None])
-    S = sb.T @ sb
-    if len(sb) > 1:
-        cross = sb[1:].T @ sb[:-1]
-        S = S + 0.5 * (cross + cross.T)
+    S = block_meat(sb)
     Ai = np.linalg.inv(A)
     B = len(sb)
     cov = Ai @ S @ Ai.T * B / max(B - 3, 1)

@@ -271,6 +271,20 @@ def block_length(row_times: Sequence[np.ndarray], t0_s: float, settings: Setting
     return float(np.clip(span / (2 * settings.folds), settings.min_block_s, settings.block_s))
 
 
+def block_meat(scores: np.ndarray) -> np.ndarray:
+    """The middle of a cluster-robust sandwich over time blocks: the sum over blocks of s s' of
+    each block's score s, plus adjacent blocks' cross terms at half weight (a Newey-West estimate
+    with one lag: it holds when residuals are correlated across a block's edge, as turbulence
+    makes them). ``scores``: (B, k) per block, or (B,) for one score (then a 0-d array)."""
+    if scores.ndim == 1:
+        return np.asarray(float(scores @ scores) + (float(scores[1:] @ scores[:-1]) if len(scores) > 1 else 0.0))
+    S = scores.T @ scores
+    if len(scores) > 1:
+        cross = scores[1:].T @ scores[:-1]
+        S = S + 0.5 * (cross + cross.T)
+    return S
+
+
 def robust_std(x: np.ndarray) -> float:
     x = x[np.isfinite(x)]
     if len(x) == 0:
@@ -598,10 +612,7 @@ class Selector:
         H_all = self.Gb.sum(axis=0)
         H = H_all[np.ix_(free, free)]
         sb = self.gvb[:, free] + self.Gb[:, free, :] @ d  # (B, k) block scores at p
-        S = sb.T @ sb
-        if len(sb) > 1:
-            cross = sb[1:].T @ sb[:-1]
-            S = S + 0.5 * (cross + cross.T)
+        S = block_meat(sb)
         B = max(len(sb), 1)
         Hi = np.linalg.pinv(H)
         cr = Hi @ S @ Hi * B / max(B - len(free), 1)
@@ -815,7 +826,7 @@ class Selector:
 
         def z_of(keep: np.ndarray) -> float:
             g, sp = gain[keep], proj[keep]
-            v = float(sp @ sp) + (float(sp[1:] @ sp[:-1]) if len(sp) > 1 else 0.0)
+            v = float(block_meat(sp))
             total = float(np.sum(g))
             if v <= 0.0:
                 return math.inf if total > 0 else (-math.inf if total < 0 else 0.0)
