@@ -350,3 +350,26 @@ def test_a_flow_scale_or_rotation_gain_beyond_any_sensor_is_not_named() -> None:
     assert groups._plausible_gain({"gain": 0.55}) is None
     assert groups._plausible_gain({"gain": 2.82}) is not None
     assert groups._plausible_gain({"gain": 0.3}) is not None
+
+
+def test_a_wind_that_ends_just_after_a_gap_in_the_windows_is_placed_after_it():
+    """A burst of lost telemetry leaves no force window over 1.7 s (generalisation matrix gen_0101:
+    a burst at 26.2-26.7 s, the wind ending at 27.32 s). The window after the gap holds part of
+    the force: the end is refined across the gap to where that part puts it, not left at the last
+    window before the gap (25.12 s, 2.2 s early). The residual is the force channel's exact
+    response (``kernel_regressor``) to a 1.5 N force from 2.5 s to 27.32 s."""
+    from companion.diagnose.closed_loop.wind import kernel_regressor, locate
+
+    t = np.arange(0.0, 32.0, 0.02)
+    h = 5
+    before = 5 + h + 50 * np.arange(25)  # windows from 0.2 s to 25.2 s
+    after = 1342 + 50 * np.arange(4)  # from 26.84 s
+    k0 = np.concatenate([before[:-1], after[:-1]])
+    k1 = np.concatenate([before[1:], after[1:]])
+    x = kernel_regressor(t, k0, k1, h, 2.5, 27.32)
+    e = np.stack([-1.5 * x, 0.8 * x])
+    w = locate(e, t, k0, k1, h)
+    assert w is not None
+    assert w.end_s == pytest.approx(27.32, abs=0.05)
+    assert w.start_s == pytest.approx(2.5, abs=0.05)
+    assert w.fx_n == pytest.approx(-1.5, rel=0.01) and w.fy_n == pytest.approx(0.8, rel=0.01)

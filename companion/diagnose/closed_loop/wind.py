@@ -90,12 +90,23 @@ def locate(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: in
     # refine each end at twice the frame resolution, twice around
     step = max(2 * float(np.median(np.diff(t_s))), 1e-3)
     span = 1.5 * float(np.median(tm1 - tm0)) * pool
+
+    def around(x: float, dt: float = step) -> np.ndarray:
+        """Candidate times for an end now at x: within ``span``, and as far as the start of the
+        window before x and the end of the window after it, so that an end next to a gap in the
+        windows (a burst of lost telemetry) can move to the far side of the gap, where the
+        windows after it show the force still on."""
+        before, after = tm0[tm0 < x], tm1[tm1 > x]
+        lo = min(x - span, float(before.max()) if len(before) else x)
+        hi = max(x + span, float(after.min()) if len(after) else x)
+        return x + np.arange(lo - x, hi - x + dt / 2, dt)
+
     for _ in range(2):
-        grid = start + np.arange(-span, span + step / 2, step)
+        grid = around(start)
         grid = grid[grid <= end - min_s]
         if len(grid):
             start = float(grid[int(np.argmax(fit(grid, np.full(len(grid), end))[0]))])
-        grid = end + np.arange(-span, span + step / 2, step)
+        grid = around(end)
         grid = grid[grid >= start + min_s]
         if len(grid):
             end = float(grid[int(np.argmax(fit(np.full(len(grid), start), grid)[0]))])
@@ -124,9 +135,9 @@ def locate(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: in
         ok = grid[gains_ >= gains_.max() - var]
         return max(0.5 * float(ok.max() - ok.min()), fine) if len(ok) else math.nan
 
-    gs = start + np.arange(-span, span + step / 2, step / 2)
+    gs = around(start, step / 2)
     gs = gs[gs <= end - min_s]
-    ge = end + np.arange(-span, span + step / 2, step / 2)
+    ge = around(end, step / 2)
     ge = ge[ge >= start + min_s]
     start_sd = sd(gs, fit(gs, np.full(len(gs), end))[0]) if len(gs) else math.nan
     end_sd = sd(ge, fit(np.full(len(ge), start), ge)[0]) if len(ge) else math.nan
