@@ -522,6 +522,9 @@ def _plausible_gain(p: dict[str, float]) -> str | None:
 GAP_ATTITUDE_REACH_FRAMES = 3
 #: fewest comparisons an error variance of ``rebridge_gyro_gaps`` is taken from
 GAP_MIN_SAMPLES = 30
+#: most span starts an error variance of ``rebridge_gyro_gaps`` is taken from (evenly spread: a
+#: mean square needs a few thousand, and a lossy hour has runs of dozens of lengths)
+GAP_MAX_SAMPLES = 20000
 
 
 def _spline_bridge(t: np.ndarray, y: np.ndarray, i: np.ndarray, j: np.ndarray, tau_s: float) -> np.ndarray:
@@ -535,6 +538,13 @@ def _spline_bridge(t: np.ndarray, y: np.ndarray, i: np.ndarray, j: np.ndarray, t
     H = t[j] - t[i]
     di, dj = slope(i - 1, i, j), slope(i, j, j + 1)
     return H * 0.5 * (y[i] + y[j]) + H * H * (di - dj) / 12.0 + tau_s * (y[j] - y[i])
+
+
+def _spread(k: np.ndarray, at_most: int) -> np.ndarray:
+    """``k`` itself, or at most ``at_most`` of its elements evenly spread over it."""
+    if len(k) <= at_most:
+        return k
+    return k[:: math.ceil(len(k) / at_most)]
 
 
 def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.ndarray, tau_s: float = 0.0
@@ -583,12 +593,12 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
     def variance(kind: str, m: int) -> float:
         if (kind, m) not in var_cache:
             if kind == "gyro":
-                i = np.arange(1, max(n - m - 1, 1))
+                i = _spread(np.arange(1, max(n - m - 1, 1)), GAP_MAX_SAMPLES)
                 j = i + m
                 i, j = i[span_ok(i - 1, j + 1)], j[span_ok(i - 1, j + 1)]
                 d = _spline_bridge(t, y, i, j, tau_s) - (G[j] - G[i])
             else:
-                i = np.arange(0, max(n - m, 0))
+                i = _spread(np.arange(0, max(n - m, 0)), GAP_MAX_SAMPLES)
                 j = i + m
                 use = span_ok(i, j) & rec_a[i] & rec_a[j]
                 d = (att[j[use]] - att[i[use]]) - (G[j[use]] - G[i[use]])
