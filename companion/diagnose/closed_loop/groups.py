@@ -595,7 +595,8 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
             if kind == "gyro":
                 i = _spread(np.arange(1, max(n - m - 1, 1)), GAP_MAX_SAMPLES)
                 j = i + m
-                i, j = i[span_ok(i - 1, j + 1)], j[span_ok(i - 1, j + 1)]
+                use = span_ok(i - 1, j + 1)
+                i, j = i[use], j[use]
                 d = _spline_bridge(t, y, i, j, tau_s) - (G[j] - G[i])
             else:
                 i = _spread(np.arange(0, max(n - m, 0)), GAP_MAX_SAMPLES)
