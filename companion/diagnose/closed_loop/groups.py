@@ -581,8 +581,7 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
     same = seg[1:] == seg[:-1]
     fin = np.isfinite(G) & np.isfinite(y)
     ok = rec_g[1:] & rec_g[:-1] & same & fin[1:] & fin[:-1]
-    lost = np.concatenate([[0], (~rec_g).astype(np.int8), [0]])
-    starts, stops = np.flatnonzero(np.diff(lost) == 1), np.flatnonzero(np.diff(lost) == -1)
+    runs = np.array(_runs(~rec_g, 1), dtype=np.int64).reshape(-1, 2)  # runs of lost samples
     bad = np.concatenate([[0], np.cumsum(~ok)])  # intervals not measured among the first k
 
     def span_ok(i: np.ndarray, j: np.ndarray) -> np.ndarray:  # intervals i..j-1 all measured
@@ -609,7 +608,7 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
 
     # the runs of lost samples, from the sample before each (i) to the one after it (j), then
     # widened to ends where the attitude was recorded (vectorised: a lossy hour has tens of thousands)
-    i, j = starts - 1, stops.copy()
+    i, j = runs[:, 0] - 1, runs[:, 1].copy()
     keep = (i >= 0) & (j < n)
     i, j = i[keep], j[keep]
     keep = (seg[i] == seg[j]) & fin[i] & fin[j]
