@@ -224,3 +224,32 @@ def test_a_misfit_in_every_window_of_a_coloured_channel_is_not_its_noise():
     assert left == pytest.approx(max(typical_window_rms(t, noise), robust_std(r), white_noise(t, r)), rel=0.2)
     found = excess_windows(t, r, left)
     assert found and max(iv.rms / iv.noise for iv in found) > MISFIT_TIMES_NOISE  # 5.8 here
+
+
+@pytest.mark.parametrize(("channel", "rms", "noise", "said"), [
+    ("attitude_roll", 0.55e-3, 0.1e-3, False),  # seed 15 without noise or effect, 15 % lost: 6 x, 0.55 mrad
+    ("attitude_roll", 5e-3, 1e-3, True),
+    ("gyro_x", 1.5e-3, 0.2e-3, False),
+    ("gyro_x", 20e-3, 2e-3, True),  # a 5 % gyro scale error at 0.4 rad/s
+    ("flow_y", 0.3e-3, 0.05e-3, False),
+    ("force_x", 0.05, 0.01, False),
+    ("force_x", 0.4, 0.1, True),
+])
+def test_the_headline_says_does_not_fit_only_for_a_misfit_that_matters(channel, rms, noise, said):
+    """A stretch over 3 x its noise is called a misfit in the headline only when its rms passes the
+    channel's floor (``sizes.misfit_floor``); under it the headline says the recording fits to
+    within what matters, and gives the stretch, its size and the floor."""
+    from companion.diagnose.closed_loop.diagnosis import headline
+    from companion.diagnose.closed_loop.sizes import misfit_floor
+    from companion.diagnose.report import Report, Unexplained
+
+    rep = Report("synthetic", unexplained=[Unexplained(channel, 70.0, 77.5, rms, None, noise)])
+    text = headline(rep)
+    assert (f"does not fit {channel} from 70.0 to 77.5 s" in text) is said, text
+    if not said:
+        floor, unit = misfit_floor(channel)
+        assert text.startswith("the recording fits the nominal model to within what matters"), text
+        assert f"{rms:.2g} {unit} rms, under the {floor:g} {unit}" in text, text
+    # under 3 x its noise nothing is said, whatever its size
+    rep = Report("synthetic", unexplained=[Unexplained(channel, 70.0, 77.5, rms, None, rms / 2.9)])
+    assert headline(rep).startswith("the recording fits the nominal model within its noise")

@@ -45,6 +45,7 @@ from companion.diagnose.closed_loop.locate import (
     white_noise,
 )
 from companion.diagnose.closed_loop.select import Comparison, Group, ModelScore, Selector, Settings
+from companion.diagnose.closed_loop.sizes import misfit_floor
 from companion.diagnose.closed_loop.sparse import SparseFit, Term, sparse_fit
 from companion.diagnose.report import Finding, Fit, Report, Unexplained, Window
 from companion.errors import RecordingError
@@ -625,8 +626,9 @@ def headline(report: Report) -> str:
     """The first line of a report, in plain words: what differs, or that the model does not fit
     where no named effect explains a residual far above its channel's noise, or that it fits."""
     found = report.significant()
-    misfit = sorted((u for u in report.unexplained if u.times_noise >= MISFIT_TIMES_NOISE),
-                    key=lambda u: -u.times_noise)
+    over = [u for u in report.unexplained if u.times_noise >= MISFIT_TIMES_NOISE]
+    misfit = sorted((u for u in over if u.rms >= misfit_floor(u.channel)[0]), key=lambda u: -u.times_noise)
+    small = sorted((u for u in over if u.rms < misfit_floor(u.channel)[0]), key=lambda u: -u.times_noise)
     parts = []
     if found:
         names = [f.effect + (f" (or {' or '.join(a['effect'] for a in f.alternatives)}: this flight cannot tell "
@@ -642,6 +644,12 @@ def headline(report: Report) -> str:
         parts.append(f"{'it still' if found else 'the model'} does not fit {u.channel} from {u.start_s:.1f} to "
                      f"{u.end_s:.1f} s: residual {u.times_noise:.0f} x its noise, which no named effect "
                      f"explains{more}")
+    if not parts and small:
+        u = small[0]
+        floor, unit = misfit_floor(u.channel)
+        return (f"the recording fits the nominal model to within what matters: no effect it leaves out earns its "
+                f"parameters; {u.channel} from {u.start_s:.1f} to {u.end_s:.1f} s stands {u.times_noise:.0f} x its "
+                f"noise, but at {u.rms:.2g} {unit} rms, under the {floor:g} {unit} a misfit must reach to matter")
     if not parts:
         return "the recording fits the nominal model within its noise: no effect it leaves out earns its parameters"
     text = "; ".join(parts)
