@@ -154,6 +154,42 @@ def test_a_noisy_attitude_does_not_replace_a_good_gyro_bridge():
     assert rms(_gap_errors(G1, truth, lost)) < 1.2 * rms(spline)
 
 
+def test_a_long_gyro_gap_without_the_attitude_is_bridged_by_the_bounded_line():
+    """Three bursts of 0.5 s with neither gyro nor attitude (the attitude lost 5 frames either side
+    too, beyond GAP_ATTITUDE_REACH_FRAMES), in a rotation at 6 Hz, 5 % of gyro samples lost at
+    random elsewhere: the cubic's slopes, taken across a gap of 26 frames, run away (its integral's
+    slope term grows as the square of the gap: 0.2-0.4 rad here), where the straight line between
+    the end samples is bounded by them (the gap's rotation is the end rates times the gap at most).
+    The line is taken where the flight's whole stretches say it is the nearer or are too few to say:
+    each burst's error is under half the spline's."""
+    rng = np.random.default_rng(1)
+    T = 0.02
+    t = np.arange(3000) * T
+    w1, w2 = 2 * np.pi * 6.0, 2 * np.pi * 4.2
+    truth = 0.2 * (np.sin(w1 * t) / w1 + 0.5 * np.sin(w2 * t + 1.0) / w2)
+    rate = 0.2 * (np.cos(w1 * t) + 0.5 * np.cos(w2 * t + 1.0))
+    lost = rng.random(len(t)) < 0.05
+    att_rec = np.ones(len(t), dtype=bool)
+    bursts = (700, 1500, 2300)
+    for b0 in bursts:
+        lost[b0:b0 + 25] = True
+        att_rec[b0 - 5:b0 + 30] = False
+    lost[:5] = lost[-5:] = False
+    tg, g = t[~lost], rate[~lost]
+    ang, val = gyro_spline(t, tg, g, 0.6)
+    gyro = np.interp(t, tg, g)
+    data = _flight(t, truth, truth, gyro, gyro, gyro_angle_x_rad=ang, gyro_angle_y_rad=ang, gyro_fine_x_rad_s=val,
+                   gyro_fine_y_rad_s=val, gyro_rec=~lost, att_rec=att_rec)
+    G0 = ang - ang[0]
+    G1, _n_runs = rebridge_gyro_gaps(data, G0, gyro, truth)
+    i, j = np.array(bursts) - 1, np.array(bursts) + 25
+    spline = np.abs((G0[j] - G0[i]) - (truth[j] - truth[i]))
+    bridged = np.abs((G1[j] - G1[i]) - (truth[j] - truth[i]))
+    assert np.all(spline > 0.1)  # the case is a real one: the cubic runs away over each burst
+    assert np.all(bridged < 0.5 * spline)
+    assert np.all(bridged < 2 * 0.3 * 26 * T)  # bounded: the rates are under 0.3 rad/s, the gap 26 frames
+
+
 @pytest.mark.parametrize("anchor", [{}, {"yaw": 0.2, "scale_x": 1.2, "scale_y": 0.9, "delay": 0.01, "offset": 0.05}])
 def test_the_anchor_holds_the_best_sources_residual_at_the_anchor(anchor):
     """r(p) = r_best(p_a) + [r_reg(p) - r_reg(p_a)]: at p = p_a the anchored problem's residuals are

@@ -540,6 +540,14 @@ def _spline_bridge(t: np.ndarray, y: np.ndarray, i: np.ndarray, j: np.ndarray, t
     return H * 0.5 * (y[i] + y[j]) + H * H * (di - dj) / 12.0 + tau_s * (y[j] - y[i])
 
 
+def _trapezoid_bridge(t: np.ndarray, y: np.ndarray, i: np.ndarray, j: np.ndarray, tau_s: float) -> np.ndarray:
+    """The increment from frame i to frame j (arrays) of the straight line between the samples y at
+    i and j alone (the samples between taken as lost), plus ``tau_s`` (y_j - y_i) for a lag undone:
+    bounded by the end samples however long the gap, where the cubic's slopes, taken across a long
+    gap, can run away."""
+    return (t[j] - t[i]) * 0.5 * (y[i] + y[j]) + tau_s * (y[j] - y[i])
+
+
 def _spread(k: np.ndarray, at_most: int) -> np.ndarray:
     """``k`` itself, or at most ``at_most`` of its elements evenly spread over it."""
     if len(k) <= at_most:
@@ -552,15 +560,23 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
     """The gyro's angle G (per frame, each segment from its own start; the lag undone) with each
     run of frames whose gyro sample was lost re-bridged with the attitude's help.
 
+    First the gyro's own bridge of each run: the spline's (what G holds), or the straight line
+    between the run's end samples (``_trapezoid_bridge``) where this flight's whole stretches say
+    the line is the nearer over runs of that length (each bridge's error variance against the
+    spline's own increment, on the same spans), or where they are too few to say. The line is
+    bounded by its end samples; the cubic's slopes, taken across a long gap, are not (a burst of
+    0.5 s in a 6 Hz rotation with the attitude lost around it too: 0.2-0.4 rad from the truth,
+    tests/test_diagnose_rotation.py).
+
     Over a run, from the sample before it (frame i) to the one after it (frame j), widened by up to
     ``GAP_ATTITUDE_REACH_FRAMES`` frames of whole gyro intervals to ends where the attitude was
     recorded, the attitude's difference from G (att - G, at the frames where the attitude was
     recorded, linear between them) is added to G with weight w = v_g / (v_g + v_a). v_g is the
-    spline's error over a run of that length and v_a the attitude's over the widened span, both
-    measured on this flight: on stretches where every gyro sample is there, against the spline's
-    own increment, the spline's bridge made from the four samples it would have there
-    (``_spline_bridge``) and the attitude's change. Returns the angle and how many runs took some
-    of the attitude.
+    chosen bridge's error over a run of that length and v_a the attitude's over the widened span,
+    both measured on this flight: on stretches where every gyro sample is there, against the
+    spline's own increment, the bridge made from the samples it would have there
+    (``_spline_bridge``: four, ``_trapezoid_bridge``: two) and the attitude's change. Returns the
+    angle and how many runs took some of the attitude.
 
     Why: where a loop's rotation is fast the spline bridges a lost sample badly (a noise-free
     generator flight whose loop oscillates at 12 Hz with 15 % of its messages lost, seed 15:
@@ -591,12 +607,13 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
 
     def variance(kind: str, m: int) -> float:
         if (kind, m) not in var_cache:
-            if kind == "gyro":
+            if kind in ("spline", "trapezoid"):  # on the same spans, so that the two compare
                 i = _spread(np.arange(1, max(n - m - 1, 1)), GAP_MAX_SAMPLES)
                 j = i + m
                 use = span_ok(i - 1, j + 1)
                 i, j = i[use], j[use]
-                d = _spline_bridge(t, y, i, j, tau_s) - (G[j] - G[i])
+                bridge = _spline_bridge if kind == "spline" else _trapezoid_bridge
+                d = bridge(t, y, i, j, tau_s) - (G[j] - G[i])
             else:
                 i = _spread(np.arange(0, max(n - m, 0)), GAP_MAX_SAMPLES)
                 j = i + m
@@ -614,6 +631,28 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
     keep = (seg[i] == seg[j]) & fin[i] & fin[j]
     i, j = i[keep], j[keep]
     m = j - i
+    # the gyro's own bridge of each run: the spline's (what G holds), or the straight line between
+    # the run's end samples where this flight's whole stretches say that is the nearer over runs of
+    # that length, or where they are too few to say (the line is bounded by the end samples); v_g
+    # is the chosen one's error variance
+    v_g_of: dict[int, float] = {}
+    line_of: dict[int, bool] = {}
+    for k in np.unique(m).tolist():
+        v_s, v_t = variance("spline", k), variance("trapezoid", k)
+        line_of[k] = not math.isfinite(v_s) or v_t < v_s
+        v_g_of[k] = v_t if line_of[k] else v_s
+    line = np.array([line_of[k] for k in m.tolist()], dtype=bool)
+    if np.any(line):
+        li, lj = i[line], j[line]
+        delta = _trapezoid_bridge(t, y, li, lj, tau_s) - (out[lj] - out[li])
+        lengths = lj - li
+        first = np.repeat(li, lengths)
+        k_int = first + np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+        add = np.zeros(n - 1)  # spread over the run's intervals in proportion to their length
+        add[k_int] = np.repeat(delta / (t[lj] - t[li]), lengths) * (t[k_int + 1] - t[k_int])
+        for s0, e0 in data.segments():
+            if e0 - s0 >= 2 and np.any(add[s0:e0 - 1]):
+                out[s0 + 1:e0] += np.cumsum(add[s0:e0 - 1])
     for _ in range(GAP_ATTITUDE_REACH_FRAMES):
         move = ~rec_a[i] & (i > 0)
         move[move] &= ok[i[move] - 1]
@@ -625,7 +664,7 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
     i, j, m = i[keep], j[keep], m[keep]
     if len(i) == 0:
         return out, 0
-    v_g = np.array([variance("gyro", int(k)) for k in m])
+    v_g = np.array([v_g_of[int(k)] for k in m])
     v_a = np.array([variance("attitude", int(k)) for k in j - i])
     keep = np.isfinite(v_g) & np.isfinite(v_a) & (v_g + v_a > 0.0)
     i, j, v_g, v_a = i[keep], j[keep], v_g[keep], v_a[keep]
@@ -645,7 +684,7 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
         # run's ends are such frames, so within a run this is the run's own interpolation; per
         # segment, as a log across reboots starts its clock again)
         h = have[s0:e0]
-        D = np.interp(t[s0:e0], t[s0:e0][h], (att[s0:e0] - G[s0:e0])[h])
+        D = np.interp(t[s0:e0], t[s0:e0][h], (att[s0:e0] - out[s0:e0])[h])
         inc = np.diff(out[s0:e0]) + weight[s0:e0 - 1] * np.diff(D)
         out[s0 + 1:e0] = out[s0] + np.cumsum(inc)
     return out, int(len(i))
