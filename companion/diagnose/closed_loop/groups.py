@@ -548,6 +548,14 @@ def _trapezoid_bridge(t: np.ndarray, y: np.ndarray, i: np.ndarray, j: np.ndarray
     return (t[j] - t[i]) * 0.5 * (y[i] + y[j]) + tau_s * (y[j] - y[i])
 
 
+def _run_intervals(i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The intervals (k: from frame k to k + 1) of each run from frame i to frame j (arrays), and
+    the index of the run each belongs to (vectorised: a lossy hour has tens of thousands of runs)."""
+    lengths = j - i
+    run = np.repeat(np.arange(len(i)), lengths)
+    return i[run] + np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths), run
+
+
 def _spread(k: np.ndarray, at_most: int) -> np.ndarray:
     """``k`` itself, or at most ``at_most`` of its elements evenly spread over it."""
     if len(k) <= at_most:
@@ -645,11 +653,9 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
     if np.any(line):
         li, lj = i[line], j[line]
         delta = _trapezoid_bridge(t, y, li, lj, tau_s) - (out[lj] - out[li])
-        lengths = lj - li
-        first = np.repeat(li, lengths)
-        k_int = first + np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+        k_int, run = _run_intervals(li, lj)
         add = np.zeros(n - 1)  # spread over the run's intervals in proportion to their length
-        add[k_int] = np.repeat(delta / (t[lj] - t[li]), lengths) * (t[k_int + 1] - t[k_int])
+        add[k_int] = (delta / (t[lj] - t[li]))[run] * (t[k_int + 1] - t[k_int])
         for s0, e0 in data.segments():
             if e0 - s0 >= 2 and np.any(add[s0:e0 - 1]):
                 out[s0 + 1:e0] += np.cumsum(add[s0:e0 - 1])
@@ -671,11 +677,9 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
     if len(i) == 0:
         return out, 0
     # each interval's weight: the largest of the runs' that cover it (widened runs may overlap)
-    lengths = j - i
-    first = np.repeat(i, lengths)
-    within = np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    k_int, run = _run_intervals(i, j)
     weight = np.zeros(n - 1)
-    np.maximum.at(weight, first + within, np.repeat(v_g / (v_g + v_a), lengths))
+    np.maximum.at(weight, k_int, (v_g / (v_g + v_a))[run])
     have = rec_a & fin & np.isfinite(att)
     for s0, e0 in data.segments():
         if e0 - s0 < 2 or not np.any(weight[s0:e0 - 1]):
