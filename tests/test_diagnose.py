@@ -171,6 +171,75 @@ def test_the_free_response_is_fitted_where_it_is_not_yet_zero(monkeypatch, omega
         assert np.nanmax(np.abs(g - w)) <= 1e-12 * np.nanmax(np.abs(w))
 
 
+def test_masked_row_means_equal_the_strided_sums():
+    """``attitude.masked_row_means`` (the attitude residual's offset over the fitted frames, for
+    speed) gives the very numbers of the numpy expression it replaces on ``e[:, mask]``: random
+    rows of any scale with NaN among them, masks from none to every frame, rows all NaN."""
+    from companion.diagnose.closed_loop.attitude import masked_row_means
+
+    rng = np.random.default_rng(5)
+    for trial in range(60):
+        n = int(rng.integers(0, 20000))
+        e = rng.standard_normal((2, n)) * 10.0 ** rng.uniform(-6, 2) + rng.uniform(-1, 1)
+        e[:, rng.random(n) < 0.02] = np.nan
+        if trial == 1:
+            e[1] = np.nan
+        mask = rng.random(n) > (1.0 if trial == 2 else rng.uniform(0, 1))
+        x = e[:, mask]
+        ok = np.isfinite(x)
+        want = np.where(ok, x, 0.0).sum(axis=1, keepdims=True) / np.maximum(ok.sum(axis=1, keepdims=True), 1)
+        np.testing.assert_array_equal(masked_row_means(e, mask), want)
+
+
+def test_solve_stack_equals_solve_one_by_one():
+    """``select._solve_stack`` (the folds' small systems at once, for speed) gives what ``_solve``
+    gives each system: well-conditioned, singular (least squares) and rank-deficient ones mixed."""
+    from companion.diagnose.closed_loop.select import _solve, _solve_stack
+
+    rng = np.random.default_rng(6)
+    for trial in range(300):
+        k, m = int(rng.integers(1, 12)), int(rng.integers(1, 10))
+        X = rng.standard_normal((m, k, k + int(rng.integers(-k + 1, 4))))
+        A = X @ X.transpose(0, 2, 1) * 10.0 ** rng.uniform(-3, 6)
+        if trial % 3 == 0:
+            A[0] = 0.0
+        if trial % 5 == 0:
+            A[-1, 0, :] = A[-1, :, 0] = 0.0
+        b = rng.standard_normal((m, k))
+        np.testing.assert_array_equal(_solve_stack(A, b), np.array([_solve(a, v) for a, v in zip(A, b, strict=True)]))
+
+
+def test_the_selectors_kept_residuals_follow_its_search():
+    """``Selector.residuals`` and ``weighted`` keep the last evaluations (for speed): once the
+    searched part moves (``_search``), the residuals at the same parameters are the group's with
+    the part where it is now, not the ones kept from before; and what is kept cannot be written."""
+    rng = np.random.default_rng(8)
+    t = np.linspace(0.0, 200.0, 2001)
+    x = 0.3 * (t >= 120.0) + 0.2 * np.sin(t) + 0.01 * rng.standard_normal(len(t))
+    where = {"start_s": 100.0}
+
+    def residuals(p: np.ndarray) -> list[np.ndarray]:
+        return [x - p[0] * (t >= where["start_s"]) - p[1] * np.sin(t)]
+
+    def search(p: np.ndarray, train: list[np.ndarray] | None) -> list[np.ndarray]:
+        where["start_s"] = 120.0 if train is None else 60.0
+        return [-(t >= where["start_s"]).astype(float)[:, None]]
+
+    g = Group(name="step", params=("f", "a"), nominal=np.zeros(2), steps=np.full(2, 1e-3), lower=np.full(2, -10.0),
+              upper=np.full(2, 10.0), channels=("y",), units=("1",), floors=(1e-9,), residuals=residuals,
+              row_times=[t], candidates=[Candidate("step", ("f",)), Candidate("sine", ("a",))],
+              linear=("f", "a"), search=search, state=lambda: dict(where), searched_effect="step")
+    s = Selector(g, Settings(), 0.0)
+    p = s.p_full
+    before = s.residuals(p)[0].copy()
+    w_before = s.weighted(p)[0].copy()
+    assert not s.residuals(p)[0].flags.writeable and not s.weighted(p)[0].flags.writeable
+    s._search(p, [np.arange(len(t)) % 2 == 0])
+    np.testing.assert_array_equal(s.residuals(p)[0], residuals(p)[0])
+    np.testing.assert_array_equal(s.weighted(p)[0], np.nan_to_num(residuals(p)[0] / s.sigma[0]))
+    assert np.abs(s.residuals(p)[0] - before).max() > 0.1 and np.abs(s.weighted(p)[0] - w_before).max() > 0
+
+
 def test_a_start_rate_is_not_fitted_from_frames_the_response_does_not_reach():
     """A segment whose only fitted frame is its first (a fold's edge, a lost command's restart):
     the free response is 0 there but for rounding (7e-18 at 5.4 rad/s), and e / h would be

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion import native
 from companion.config import Config
 from companion.errors import RecordingError
 from companion.recordings.load import Recording
@@ -183,7 +184,7 @@ def _interp(t_query: np.ndarray, t: np.ndarray, y: np.ndarray, max_gap_s: float)
     if len(t) == 0:
         return np.full(len(t_query), np.nan)
     out = np.interp(t_query, t, y)
-    i = np.clip(np.searchsorted(t, t_query), 1, max(len(t) - 1, 1))
+    i = np.clip(native.searchsorted(t, t_query), 1, max(len(t) - 1, 1))  # np.searchsorted, compiled
     near = np.minimum(np.abs(t_query - t[i - 1]), np.abs(t[np.minimum(i, len(t) - 1)] - t_query))
     out[near > max_gap_s] = np.nan
     return out
@@ -193,7 +194,7 @@ def _nearest(t_query: np.ndarray, t: np.ndarray, tol_s: float) -> np.ndarray:
     """Index of the sample of ``t`` nearest each query time, -1 when none is within ``tol_s``."""
     if len(t) == 0:
         return np.full(len(t_query), -1)
-    i = np.clip(np.searchsorted(t, t_query), 1, max(len(t) - 1, 1))
+    i = np.clip(native.searchsorted(t, t_query), 1, max(len(t) - 1, 1))  # np.searchsorted, compiled
     left = i - 1
     right = np.minimum(i, len(t) - 1)
     pick = np.where(np.abs(t[left] - t_query) <= np.abs(t[right] - t_query), left, right)
@@ -255,9 +256,11 @@ def _grid(tb: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
     n = int(pos[-1]) + 1
     t = np.empty(n)
     t[pos] = tb
-    for i in np.flatnonzero(missing):
-        k = missing[i]
-        t[pos[i] + 1: pos[i] + 1 + k] = tb[i] + d[i] * np.arange(1, k + 1) / (k + 1)
+    # the j-th of the k frames inserted after recorded frame i at tb[i] + d[i] j / (k + 1), every
+    # gap at once (a lossy hour has thousands)
+    i = np.repeat(np.arange(len(missing)), missing)
+    j = np.arange(1, len(i) + 1) - np.repeat(np.cumsum(missing) - missing, missing)
+    t[pos[i] + j] = tb[i] + d[i] * j / (missing[i] + 1)
     return t, pos
 
 
@@ -277,7 +280,7 @@ def _interp_gapped(t_query: np.ndarray, t: np.ndarray, y: np.ndarray, max_gap_s:
         out = CubicSpline(t, y, extrapolate=False)(t_query)
     elif len(t) >= 2:
         out = np.interp(t_query, t, y)
-    i = np.clip(np.searchsorted(t, t_query), 1, max(len(t) - 1, 1))
+    i = np.clip(native.searchsorted(t, t_query), 1, max(len(t) - 1, 1))  # np.searchsorted, compiled
     lo, hi = t[i - 1], t[np.minimum(i, len(t) - 1)]
     exact = np.minimum(np.abs(t_query - lo), np.abs(t_query - hi)) <= 1e-9
     inside = (t_query >= t[0]) & (t_query <= t[-1]) & (hi - lo <= max_gap_s)

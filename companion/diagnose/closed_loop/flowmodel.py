@@ -83,7 +83,7 @@ def ramp_integral(t: np.ndarray, start_s: float | np.ndarray, end_s: float | np.
     if start.ndim == 0 and not (math.isfinite(float(start)) and math.isfinite(float(end)) and end > start):
         return np.zeros_like(t)
     d = np.maximum(end - start, 0.0)
-    on = np.clip(t - start, 0.0, d)  # time the force has acted by t
+    on = np.minimum(np.maximum(t - start, 0.0), d)  # time the force has acted by t (np.clip, without its wrapper)
     return 0.5 * on * on + d * np.maximum(t - end, 0.0)
 
 
@@ -284,7 +284,9 @@ class FlowProblem:
             self._seg_last[a:b] = b - 1
         self._set_flow_windows(fwin)
         self._vel_cache = _Cache(4)
+        self._trans_integrals = _Cache(3)
         self._form_drag_cache = _Cache()
+        self._wind_cache = _Cache(4)
         self._phi_cache = _Cache(3)
         self._dPhi = np.zeros_like(self.Phi)
         for a, b in data.segments():
@@ -410,7 +412,7 @@ class FlowProblem:
         t = self.t
         k = np.arange(len(t)) if idx is None else idx
         tq = np.clip(t[k] - delay_s, self._seg_t0[k], t[self._seg_last[k]])
-        j = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, len(t) - 2)
+        j = np.clip(native.searchsorted(t, tq, side="right") - 1, 0, len(t) - 2)  # np.searchsorted, compiled
         j = np.minimum(j, np.maximum(self._seg_last[k] - 1, 0))
         h = t[j + 1] - t[j]
         u = np.clip((tq - t[j]) / h, 0.0, 1.0)
@@ -430,13 +432,18 @@ class FlowProblem:
 
     def _translation_uncached(self, offset: float, delay_s: float, power: int) -> np.ndarray:
         W = self.flow.idx
+        f, F = self._trans_integrals.get((float(offset), float(power)),
+                                         lambda: self._translation_integrals(offset, power))
+        I = self._shifted(F, f, delay_s, W)
+        return I[:2] - self.V[:, W][:, :, :1] * I[2]
+
+    def _translation_integrals(self, offset: float, power: int) -> tuple[np.ndarray, np.ndarray]:
+        """``model_translation``'s integrands V / (A - offset)^power (two rows) and 1 / (A -
+        offset)^power, stacked (3, n), and their integrals (``_cum``): per offset, not per delay,
+        which only shifts them (a Jacobian's delay column, a fit of the delay alone)."""
         ainv = 1.0 / (self.A - offset) ** power
-        f1 = self.V * ainv
-        I1 = self._cum(f1)
-        I2 = self._cum(ainv)
-        I1 = self._shifted(I1, f1, delay_s, W)
-        I2 = self._shifted(I2, ainv, delay_s, W)
-        return I1 - self.V[:, W][:, :, :1] * I2
+        f = np.concatenate([self.V * ainv, ainv[None]])
+        return f, self._cum(f)
 
     def _cum(self, f: np.ndarray) -> np.ndarray:
         """Trapezoidal integral of f over time, restarting at each segment (constant offsets are
@@ -578,6 +585,22 @@ class FlowProblem:
         when ``with_dq`` is False: the costliest piece, and a residual without form drag does not
         need it), ``dt1`` the wind regressor (s)."""
         dv, dx = self._odometry_window_changes(p)
+        parts = {
+            "dv": dv,
+            "dv_tilt": self._dv_tilt,
+            "dx": dx,
+            # per wind window, not per parameter vector: a fit moves the window seldom
+            "dt1": self._wind_cache.get((float(start_s), float(end_s)), lambda: self._wind_regressor(start_s, end_s)),
+            "span_s": self._span,
+        }
+        if with_dq:
+            parts["dq"] = self._form_drag_cache.get(_geometry_key(p),
+                                                    lambda: _FormDrag(self, self.flow_velocity(p)[0])).dq()
+        return parts
+
+    def _wind_regressor(self, start_s: float, end_s: float) -> np.ndarray:
+        """``force_parts``'s ``dt1`` (read-only, (2, n_windows)): each force window's change of the
+        boundary means of a unit force's double integral over [start_s, end_s)."""
         k0, k1, d0, d1 = self._k0, self._k1, self._den0, self._den1
         h = self.h
         t = self.t
@@ -585,17 +608,9 @@ class FlowProblem:
         def ravg(k: np.ndarray, den: np.ndarray) -> np.ndarray:
             return (ramp_integral(t[k + h], start_s, end_s) - ramp_integral(t[k - h], start_s, end_s)) / den
 
-        parts = {
-            "dv": dv,
-            "dv_tilt": self._dv_tilt,
-            "dx": dx,
-            "dt1": np.broadcast_to(ravg(k1, d1) - ravg(k0, d0), (2, len(k0))).copy(),
-            "span_s": self._span,
-        }
-        if with_dq:
-            parts["dq"] = self._form_drag_cache.get(_geometry_key(p),
-                                                    lambda: _FormDrag(self, self.flow_velocity(p)[0])).dq()
-        return parts
+        out = np.broadcast_to(ravg(k1, d1) - ravg(k0, d0), (2, len(k0))).copy()
+        out.flags.writeable = False
+        return out
 
     def _bavg(self, Z: np.ndarray, k: np.ndarray, den: np.ndarray) -> np.ndarray:
         """Mean of the derivative of Z over [t_k-h, t_k+h]: (Z(k+h) - Z(k-h)) / span."""

@@ -387,6 +387,9 @@ class FlowGroupState:
         #: the flow delay the group's nominal model carries: the flow's timing against its
         #: rotation source, aligned within what the stamps leave uncertain (``_stamp_alignment``)
         self.timing_offset_s = 0.0
+        #: ``null_pvalue`` by the parameters it reads (the selector's comparisons ask for the same
+        #: model without wind from models that differ only in the wind)
+        self._null_p: dict[bytes, float] = {}
 
     @property
     def start_end(self) -> tuple[float, float]:
@@ -452,8 +455,11 @@ class FlowGroupState:
             return 1.0
         q = p_with.copy()
         q[IDX["fx"]] = q[IDX["fy"]] = 0.0
-        e = self.fp.force_residual(q)
-        return null_pvalue(e, self.fp.t, W[:, 0], W[:, 1], seed=len(W))
+        key = q.tobytes()
+        if key not in self._null_p:
+            e = self.fp.force_residual(q)
+            self._null_p[key] = null_pvalue(e, self.fp.t, W[:, 0], W[:, 1], seed=len(W))
+        return self._null_p[key]
 
     def active_rows(self) -> list[np.ndarray] | None:
         """Rows inside and around the current wind window: none on the flow channels, the force
@@ -643,13 +649,14 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
     # the run's end samples where this flight's whole stretches say that is the nearer over runs of
     # that length, or where they are too few to say (the line is bounded by the end samples); v_g
     # is the chosen one's error variance
-    v_g_of: dict[int, float] = {}
-    line_of: dict[int, bool] = {}
-    for k in np.unique(m).tolist():
+    lengths, length_of = np.unique(m, return_inverse=True)  # per run length, not per run
+    v_g_of = np.empty(len(lengths))
+    line_of = np.empty(len(lengths), dtype=bool)
+    for q, k in enumerate(lengths.tolist()):
         v_s, v_t = variance("spline", k), variance("trapezoid", k)
-        line_of[k] = not math.isfinite(v_s) or v_t < v_s
-        v_g_of[k] = v_t if line_of[k] else v_s
-    line = np.array([line_of[k] for k in m.tolist()], dtype=bool)
+        line_of[q] = not math.isfinite(v_s) or v_t < v_s
+        v_g_of[q] = v_t if line_of[q] else v_s
+    line = line_of[length_of]
     if np.any(line):
         li, lj = i[line], j[line]
         delta = _trapezoid_bridge(t, y, li, lj, tau_s) - (out[lj] - out[li])
@@ -667,11 +674,12 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
         move[move] &= ok[j[move]]
         j = j + move
     keep = rec_a[i] & rec_a[j]
-    i, j, m = i[keep], j[keep], m[keep]
+    i, j, length_of = i[keep], j[keep], length_of[keep]
     if len(i) == 0:
         return out, 0
-    v_g = np.array([v_g_of[int(k)] for k in m])
-    v_a = np.array([variance("attitude", int(k)) for k in j - i])
+    v_g = v_g_of[length_of]
+    spans, span_of = np.unique(j - i, return_inverse=True)
+    v_a = np.array([variance("attitude", k) for k in spans.tolist()])[span_of]
     keep = np.isfinite(v_g) & np.isfinite(v_a) & (v_g + v_a > 0.0)
     i, j, v_g, v_a = i[keep], j[keep], v_g[keep], v_a[keep]
     if len(i) == 0:
@@ -702,30 +710,27 @@ ROTATION_CROSSOVER_HZ = 1.0
 REGRESSOR_CROSSOVER_HZ = 0.1
 
 
-def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0,
-                    crossover_hz: float = ROTATION_CROSSOVER_HZ) -> tuple[np.ndarray, np.ndarray] | None:
-    """(pitch, roll) for the flow's rotation: the integrated gyro above ``crossover_hz``
-    and the attitude estimate below it (a complementary filter, zero phase: fused = G + LP(att - G)
-    with G the gyro's integral per segment, so the two parts add up to the attitude wherever the
-    two sources agree).
+@dataclass(frozen=True)
+class GyroAngles:
+    """The gyro's angle about the pitch and the roll axis (``gyro_angles``), per frame, and the
+    segments it is made over (at least 30 frames; NaN elsewhere)."""
 
-    Why: an attitude estimate carries its own noise (white or coloured, an EKF output) and is
-    smoothed at high frequency; the flow sees the true rotation. Compared with the noisy attitude,
-    the flow's residual holds the attitude's noise, and every rotation regressor built from the same
-    attitude holds it too: errors in variables, read as a rotation gain, a delay or a lever arm.
-    The gyro has the high-frequency rotation; a bias becomes a constant after the high-pass (gone
-    in every difference); a gyro low-pass (``gyro_lag`` from the gyro group) is undone first,
-    integral(gyro) + tau (gyro - gyro(0)); a run of lost gyro samples is bridged with the attitude's
-    help where the flight's own errors say it is the better (``rebridge_gyro_gaps``). None when the
-    gyro is not recorded at the frame rate (then the attitude)."""
+    angles: tuple[np.ndarray, np.ndarray]
+    segments: list[tuple[int, int]]
+
+
+def gyro_angles(data: FlightData, gyro_lag_s: float = 0.0) -> GyroAngles | None:
+    """The gyro's part of ``rotation_angles``, which does not depend on the crossover: per axis
+    (pitch, roll) and segment of at least 30 frames, the gyro's integral from the segment's start
+    (the spline's, ``channels.gyro_spline``, where it covers the segment), the lag ``gyro_lag_s``
+    undone, its runs of lost samples re-bridged (``rebridge_gyro_gaps``). None when the gyro is
+    not recorded at the frame rate."""
     if np.mean(data.gyro_rec) < 0.75:
         return None
-    fs = 1.0 / data.frame_s
-    b, a = filters.butter2_lowpass(crossover_hz / (0.5 * fs))
-    out = []
+    angles = []
+    long_segments: list[tuple[int, int]] = []
     for ang, gyr, gang, gfine in ((data.pitch_rad, data.gyro_y_rad_s, data.gyro_angle_y_rad, data.gyro_fine_y_rad_s),
                                   (data.roll_rad, data.gyro_x_rad_s, data.gyro_angle_x_rad, data.gyro_fine_x_rad_s)):
-        fused = np.array(ang, dtype=float)
         G_all = np.full(data.n, np.nan)
         long_segments = []
         for a0, b0 in data.segments():
@@ -750,7 +755,37 @@ def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0,
             G_all[a0:b0] = G
         # the runs the gyro was lost over, bridged with the attitude's help where it is the better
         G_all, _n_runs = rebridge_gyro_gaps(data, G_all, gyr, ang, gyro_lag_s)
-        for a0, b0 in long_segments:
+        angles.append(G_all)
+    return GyroAngles((angles[0], angles[1]), long_segments)
+
+
+def rotation_angles(data: FlightData, gyro_lag_s: float = 0.0, crossover_hz: float = ROTATION_CROSSOVER_HZ,
+                    gyro: GyroAngles | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(pitch, roll) for the flow's rotation: the integrated gyro above ``crossover_hz``
+    and the attitude estimate below it (a complementary filter, zero phase: fused = G + LP(att - G)
+    with G the gyro's integral per segment, so the two parts add up to the attitude wherever the
+    two sources agree). ``gyro``: ``gyro_angles(data, gyro_lag_s)`` when already made (the flow
+    group fuses the same G at two crossovers).
+
+    Why: an attitude estimate carries its own noise (white or coloured, an EKF output) and is
+    smoothed at high frequency; the flow sees the true rotation. Compared with the noisy attitude,
+    the flow's residual holds the attitude's noise, and every rotation regressor built from the same
+    attitude holds it too: errors in variables, read as a rotation gain, a delay or a lever arm.
+    The gyro has the high-frequency rotation; a bias becomes a constant after the high-pass (gone
+    in every difference); a gyro low-pass (``gyro_lag`` from the gyro group) is undone first,
+    integral(gyro) + tau (gyro - gyro(0)); a run of lost gyro samples is bridged with the attitude's
+    help where the flight's own errors say it is the better (``rebridge_gyro_gaps``). None when the
+    gyro is not recorded at the frame rate (then the attitude)."""
+    if gyro is None:
+        gyro = gyro_angles(data, gyro_lag_s)
+    if gyro is None:
+        return None
+    fs = 1.0 / data.frame_s
+    b, a = filters.butter2_lowpass(crossover_hz / (0.5 * fs))
+    out = []
+    for ang, G_all in zip((data.pitch_rad, data.roll_rad), gyro.angles, strict=True):
+        fused = np.array(ang, dtype=float)
+        for a0, b0 in gyro.segments:
             G = G_all[a0:b0]
             fused[a0:b0] = G + filters.filtfilt(b, a, ang[a0:b0] - G)
         out.append(fused)
@@ -960,11 +995,12 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
     if source is not None and source not in ROTATION_SOURCES:
         raise ValueError(f"flow_group: no rotation source {source!r} (one of {', '.join(ROTATION_SOURCES)})")
     kw: dict[str, Any] = dict(mass_kg=cfg.airframe.mass_kg, gravity_m_s2=cfg.airframe.gravity_m_s2)
-    fused = rotation_angles(data, gyro_lag_s) if source in (None, "gyro") else None
+    gyro = gyro_angles(data, gyro_lag_s)  # made once: fused here, and for the regressors below
+    fused = rotation_angles(data, gyro_lag_s, gyro=gyro) if source in (None, "gyro") else None
     own = flow_body_angles(data) if source in (None, "flow") else None
     if (source == "gyro" and fused is None) or (source == "flow" and own is None):
         source = None
-        fused, own = rotation_angles(data, gyro_lag_s), flow_body_angles(data)
+        fused, own = rotation_angles(data, gyro_lag_s, gyro=gyro), flow_body_angles(data)
     fp = FlowProblem(data, **kw) if source in (None, "attitude") else None
     sources: list[tuple[str, FlowProblem]] = [] if fp is None else [("the attitude estimate", fp)]
     keys: list[str] = [] if fp is None else ["attitude"]  # each source's ``ROTATION_SOURCES`` key
@@ -1008,11 +1044,12 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
                         f"{1e3 * gyro_lag_s:.2f} ms (the attitude stamps' rounding)")
             data.notes.append(lag_note)
             gyro_lag_s = lag_flow
-            fp = FlowProblem(data, rotation_angles=rotation_angles(data, gyro_lag_s), **kw)
+            gyro = gyro_angles(data, gyro_lag_s)
+            fp = FlowProblem(data, rotation_angles=rotation_angles(data, gyro_lag_s, gyro=gyro), **kw)
     base = fp
     # the effects' regressors from sources whose noise the residual does not share (``anchor``):
     # the rotation from the gyro, the velocity from the tilt above a low crossover
-    regressor = rotation_angles(data, gyro_lag_s, REGRESSOR_CROSSOVER_HZ)
+    regressor = rotation_angles(data, gyro_lag_s, REGRESSOR_CROSSOVER_HZ, gyro=gyro)
     what = f"the gyro above {REGRESSOR_CROSSOVER_HZ:g} Hz"
     if regressor is None:
         regressor = (data.pitch_rad, data.roll_rad)

@@ -36,6 +36,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import TypeVar
 
 import numpy as np
 from scipy import special
@@ -240,6 +241,8 @@ def _correlation(cr: np.ndarray, Hi: np.ndarray) -> tuple[np.ndarray, bool]:
     def corr(c: np.ndarray) -> np.ndarray:
         d = np.sqrt(np.clip(np.diag(c), 0.0, None))
         ok = d > 0
+        if ok.all():  # (the usual case: every element divided, no index arrays needed)
+            return np.clip(c / np.outer(d, d), -1.0, 1.0)
         out = np.eye(len(c))
         out[np.ix_(ok, ok)] = c[np.ix_(ok, ok)] / np.outer(d[ok], d[ok])
         return np.clip(out, -1.0, 1.0)
@@ -292,6 +295,21 @@ def robust_std(x: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(x - np.median(x))))
 
 
+#: ``Selector.residuals`` keeps this many parameter vectors' residuals (and ``weighted`` as many
+#: weighted ones)
+RESIDUAL_MEMO = 6
+
+
+_Key = TypeVar("_Key")
+
+
+def _remember(memo: dict[_Key, list[np.ndarray]], key: _Key, value: list[np.ndarray]) -> None:
+    """Put ``value`` in ``memo`` as its newest entry, the oldest dropped past ``RESIDUAL_MEMO``."""
+    memo[key] = value
+    if len(memo) > RESIDUAL_MEMO:
+        memo.pop(next(iter(memo)))
+
+
 #: ``Selector._stats`` forms the rows' outer products a batch of blocks at a time, at most this
 #: many values at once (32 MB)
 STATS_BATCH_VALUES = 4_000_000
@@ -318,6 +336,13 @@ class Selector:
         self._deadline = time.monotonic() + settings.time_budget_s
         self._timed_out = False
         self._null_cache: dict[tuple[tuple[float, ...], tuple[float, ...]], float] = {}
+        #: the last residuals and weighted residuals (``residuals``, ``weighted``)
+        self._memo_raw: dict[bytes, list[np.ndarray]] = {}
+        self._memo_weighted: dict[tuple[bytes, bytes], list[np.ndarray]] = {}
+        #: ``_blocks`` by set of free parameters
+        self._block_index: dict[tuple[int, ...], tuple[list[int], tuple[np.ndarray, ...], tuple[np.ndarray, ...]]] = {}
+        #: the parameters of the last ``_relinearise``, until anything moves the linearisation
+        self._linearised_at: bytes | None = None
         self.t0_s = t0_s
         self.block_s = block_length(group.row_times, t0_s, settings)
         self.cvblocks = [np.maximum(block_ids(t, t0_s, settings, self.block_s), 0) for t in group.row_times]
@@ -327,7 +352,7 @@ class Selector:
         self.n_rows = int(sum(len(t) for t in group.row_times))
         self.P = len(group.params)
         self.sigma = np.ones(len(group.channels))
-        self.r_nominal = group.residuals(group.nominal)
+        self.r_nominal = self.residuals(group.nominal)
         self.sigma = self._noise(self.r_nominal)
         self.widx: list[int] = []
         if group.searched_effect is not None:
@@ -341,12 +366,17 @@ class Selector:
             self._search(p_full, None)
             p_full = self._levenberg(p_full, self.all_free)
         self.p_full = p_full
-        self.sigma = self._noise(group.residuals(p_full))
+        self.sigma = self._noise(self.residuals(p_full))
         self._relinearise(p_full)
 
     def _relinearise(self, p: np.ndarray) -> None:
         """Linearise at p (the searched effect's own parameters from zero) and, for the searched
-        effect, keep per-fold statistics with its part found on each training set alone."""
+        effect, keep per-fold statistics with its part found on each training set alone. Nothing
+        to do when the last linearisation was made here at p and nothing has moved since (no
+        search, which moves the stored Jacobian): the selection starts where the constructor
+        linearised, at the largest model's fit."""
+        if p.tobytes() == self._linearised_at:
+            return
         base = p.copy()
         base[self.widx] = self.g.nominal[self.widx]
         self._linearise(base)
@@ -367,6 +397,7 @@ class Selector:
             self.J = J_full
             self.Gb, self.gvb = Gb0, gvb0
             self._search(base, None)
+        self._linearised_at = p.tobytes()
 
     def _levenberg(self, p: np.ndarray, free: Sequence[int], iterations: int = 15) -> np.ndarray:
         """Levenberg-Marquardt on the exact residual from p over all rows, the Jacobian started
@@ -416,10 +447,35 @@ class Selector:
     def _noise(self, res: list[np.ndarray]) -> np.ndarray:
         return np.array([max(robust_std(r), f, 1e-300) for r, f in zip(res, self.g.floors, strict=True)])
 
+    def residuals(self, p: np.ndarray) -> list[np.ndarray]:
+        """The group's residuals at p (read-only arrays), kept for the last ``RESIDUAL_MEMO``
+        parameter vectors until the searched part moves (``_search``, the one state a group's
+        residuals read besides p). Why: a fit evaluates the same parameters again and again (each
+        fold's refit starts where the full fit ended, a Jacobian at the last iterate, the largest
+        model's noise at its fit): a third of a lossy hour's evaluations were repeats."""
+        key = p.tobytes()
+        r = self._memo_raw.pop(key, None)
+        if r is None:
+            r = self.g.residuals(p)
+            for x in r:
+                x.flags.writeable = False
+        _remember(self._memo_raw, key, r)
+        return r
+
     def weighted(self, p: np.ndarray) -> list[np.ndarray]:
-        """Residuals divided by each channel's noise scale; a non-finite row counts as 0."""
-        return [np.nan_to_num(r / s, nan=0.0, posinf=0.0, neginf=0.0)
-                for r, s in zip(self.g.residuals(p), self.sigma, strict=True)]
+        """Residuals divided by each channel's noise scale; a non-finite row counts as 0 (read-only
+        arrays, kept as ``residuals`` keeps its own)."""
+        key = (p.tobytes(), self.sigma.tobytes())
+        w = self._memo_weighted.pop(key, None)
+        if w is None:
+            w = []
+            for r, s in zip(self.residuals(p), self.sigma, strict=True):
+                x = r / s
+                w.append(np.where(np.isfinite(x), x, 0.0))  # np.nan_to_num's zeros, without its wrapper
+            for x in w:
+                x.flags.writeable = False
+        _remember(self._memo_weighted, key, w)
+        return w
 
     def jacobian(self, p: np.ndarray, cols: Sequence[int]) -> list[np.ndarray]:
         """Weighted Jacobian per channel (rows, len(cols)) by forward differences with the group's
@@ -439,13 +495,19 @@ class Selector:
     def _search(self, p: np.ndarray, train: list[np.ndarray] | None) -> None:
         """Run the group's search and put its columns into the stored Jacobian."""
         assert self.g.search is not None
+        self._linearised_at = None
+        self._memo_raw.clear()  # the residuals move with the searched part
+        self._memo_weighted.clear()
         cols = self.g.search(p, train)
         for c in range(len(self.J)):
             self.J[c][:, self.widx] = cols[c] / self.sigma[c]
 
     def _linearise(self, p: np.ndarray) -> None:
         """Jacobian and per (fold, channel) sufficient statistics of the linearisation at p."""
+        self._linearised_at = None
         self._linear_scores: dict[tuple[frozenset[str], bool], ModelScore] = {}
+        self._sums: dict[tuple[int | None, int | None], tuple[tuple[np.ndarray, np.ndarray],
+                                                              tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
         self.p_lin = p.copy()
         others = [i for i in range(self.P) if i not in self.widx]
         Jo = self.jacobian(p, others)
@@ -530,26 +592,54 @@ class Selector:
 
     # -- linearised scoring ----------------------------------------------------------------------
 
-    def _delta(self, free: list[int], train: np.ndarray, st: tuple[np.ndarray, np.ndarray, np.ndarray]
-               ) -> np.ndarray:
-        """Parameter change from p_lin (full vector) minimising the linearised SSE over the
-        training folds ``train`` (bool (K,)), with the other parameters at their nominal values."""
-        G_all, gv_all, _ = st
-        d = self.g.nominal - self.p_lin
-        fixed = [i for i in range(self.P) if i not in free]
+    def _fold_sums(self, variant: int | None, k: int | None) -> tuple[tuple[np.ndarray, np.ndarray],
+                                                                       tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The sums of the per (fold, channel) statistics a linearised score takes: J'J and J'r over
+        the training folds (every fold but k; every fold when k is None) and channels, and J'J, J'r,
+        r'r per channel over the held-out folds (fold k; every fold). From the linearisation's
+        statistics, or from ``variants[variant]``'s (the searched part found without fold
+        ``variant``). Kept until the next linearisation: they depend on it alone, and a selection
+        scores hundreds of effect sets from the same few (summing them again for each took half
+        of a lossy hour's linearised selection)."""
+        key = (variant, k)
+        if key not in self._sums:
+            G_all, gv_all, ss_all = (self.G, self.gv, self.ss) if variant is None else self.variants[variant]
+            train = np.ones(self.K, dtype=bool)
+            ks = np.arange(self.K)
+            if k is not None:
+                train[k] = False
+                ks = np.array([k])
+            self._sums[key] = ((G_all[train].sum(axis=(0, 1)), gv_all[train].sum(axis=(0, 1))),
+                               (G_all[ks].sum(axis=0), gv_all[ks].sum(axis=0), ss_all[ks].sum(axis=0)))
+        return self._sums[key]
+
+    def _delta(self, free: list[int], trains: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        """Parameter changes from p_lin (full vectors, one row per set of training folds) minimising
+        the linearised SSE over each set of training folds (``trains``: their J'J and J'r,
+        ``_fold_sums``), with the other parameters at their nominal values."""
+        d0 = self.g.nominal - self.p_lin
+        d = np.tile(d0, (len(trains), 1))
         if free:
-            G = G_all[train].sum(axis=(0, 1))
-            gv = gv_all[train].sum(axis=(0, 1))
-            b = gv[free] + G[np.ix_(free, fixed)] @ d[fixed]
-            d[free] = -_solve(G[np.ix_(free, free)], b)
+            fixed, ff, fx = self._blocks(free)
+            b = np.stack([gv[free] + G[fx] @ d0[fixed] for G, gv in trains])
+            d[:, free] = -_solve_stack(np.stack([G[ff] for G, _gv in trains]), b)
         return d
 
+    def _blocks(self, free: list[int]) -> tuple[list[int], tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+        """The parameters not in ``free`` and the index arrays of J'J's free-free and free-fixed
+        blocks (``np.ix_``): made once per set of free parameters, which ``_delta`` is asked about
+        for every fold of every score."""
+        key = tuple(free)
+        if key not in self._block_index:
+            fixed = [i for i in range(self.P) if i not in free]
+            self._block_index[key] = (fixed, np.ix_(free, free), np.ix_(free, fixed))
+        return self._block_index[key]
+
     @staticmethod
-    def _sse(d: np.ndarray, ks: np.ndarray, st: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
-        """Linearised weighted SSE per channel over folds ``ks`` at p_lin + d."""
-        G = st[0][ks].sum(axis=0)
-        gv = st[1][ks].sum(axis=0)
-        ss = st[2][ks].sum(axis=0)
+    def _sse(d: np.ndarray, held: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+        """Linearised weighted SSE per channel over the held-out folds (``held``: their J'J, J'r and
+        r'r per channel, ``_fold_sums``) at p_lin + d."""
+        G, gv, ss = held
         return np.maximum(ss + 2 * gv @ d + np.einsum("i,cij,j->c", d, G, d), 0.0)
 
     def score_linear(self, effects: Sequence[str], relocate: bool = False) -> ModelScore:
@@ -571,21 +661,20 @@ class Selector:
 
     def _score_linear(self, effects: Sequence[str], free: list[int], searched: bool) -> ModelScore:
         K = self.K
-        base = (self.G, self.gv, self.ss)
         p_folds = np.zeros((K, self.P))
         fold_sse = np.zeros(K)
         ho = np.zeros(len(self.g.channels))
+        # each fold's training set, then all folds: their solves at once
+        sums = [self._fold_sums(k if searched else None, k) for k in range(K)] + [self._fold_sums(None, None)]
+        deltas = self._delta(free, [train for train, _held in sums])
         for k in range(K):
-            st = self.variants[k] if searched else base
-            train = np.ones(K, dtype=bool)
-            train[k] = False
-            d = self._delta(free, train, st)
+            d = deltas[k]
             p_folds[k] = self.p_lin + d
-            sk = self._sse(d, np.array([k]), st)
+            sk = self._sse(d, sums[k][1])
             fold_sse[k] = sk.sum()
             ho += sk * self.sigma ** 2
-        d = self._delta(free, np.ones(K, dtype=bool), base)
-        full = float(self._sse(d, np.arange(K), base).sum())
+        d = deltas[K]
+        full = float(self._sse(d, sums[K][1]).sum())
         p = self.p_lin + d
         has_search = bool(self.widx) and any(i in free for i in self.widx)
         return ModelScore(tuple(effects), free, p, p_folds, self._cov(free, p, p_folds, full), fold_sse, ho,
@@ -609,8 +698,9 @@ class Selector:
             return cov
         K = self.K
         d = p - self.p_lin
+        _fixed, ff, _fx = self._blocks(free)
         H_all = self.Gb.sum(axis=0)
-        H = H_all[np.ix_(free, free)]
+        H = H_all[ff]
         sb = self.gvb[:, free] + self.Gb[:, free, :] @ d  # (B, k) block scores at p
         S = block_meat(sb)
         B = max(len(sb), 1)
@@ -626,7 +716,7 @@ class Selector:
         sd = np.sqrt(var)
         sub = corr * np.outer(sd, sd)
         sub += self._timing_cov(free, Hi, H_all)
-        cov[np.ix_(free, free)] = sub
+        cov[ff] = sub
         return cov
 
     def _timing_cov(self, free: list[int], Hi: np.ndarray, H_all: np.ndarray) -> np.ndarray:
@@ -903,7 +993,7 @@ class Selector:
         if with_.heldout_rows is not None and without.heldout_rows is not None:
             rw, r0 = with_.heldout_rows, without.heldout_rows
         else:
-            rw, r0 = self.g.residuals(with_.p), self.g.residuals(without.p)
+            rw, r0 = self.residuals(with_.p), self.residuals(without.p)
         b, a = nan.copy(), nan.copy()
         for c in range(C):
             m = rows[c]
@@ -1099,6 +1189,26 @@ class Selector:
             self._search(self.p_lin, None)
         return ModelScore(tuple(effects), free, p, p_folds, self._cov(free, p, p_folds, full_sse), fold_sse, ho,
                           full_sse, self.n_rows, state_full, fold_states, heldout_rows=rows)
+
+
+def _solve_stack(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``_solve`` of A[i] x = b[i] for a stack of systems (A (m, k, k), b (m, k)): the same numbers,
+    each of numpy's batched LAPACK calls being its single one, in one condition number's and one
+    solve's call for all (a selection solves thousands of small systems, the folds' of each score
+    together, and numpy's wrappers took longer than the solves)."""
+    try:
+        good = np.linalg.cond(A) < 1e12
+    except np.linalg.LinAlgError:  # one by one, as ``_solve`` takes them
+        return np.array([_solve(a, v) for a, v in zip(A, b, strict=True)]).reshape(b.shape)
+    out = np.empty_like(b, dtype=float)
+    if np.any(good):
+        try:
+            out[good] = np.linalg.solve(A[good], b[good][..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            return np.array([_solve(a, v) for a, v in zip(A, b, strict=True)]).reshape(b.shape)
+    for i in np.flatnonzero(~good):
+        out[i] = np.linalg.lstsq(A[i], b[i], rcond=None)[0]
+    return out
 
 
 def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:

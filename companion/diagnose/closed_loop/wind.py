@@ -47,11 +47,14 @@ def kernel_regressor(t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: int, st
     """The fraction of each force window [k0, k1] during which a unit force acts, as the force
     channel averages it (boundary means over +-h frames); shape (n_windows,), or broadcast against
     ``start_s``, ``end_s`` given as columns (G, 1) of candidate windows: (G, n_windows)."""
-    def bavg(k: np.ndarray) -> np.ndarray:
-        ta, tb = t_s[k - h], t_s[k + h]
-        return (ramp_integral(tb, start_s, end_s) - ramp_integral(ta, start_s, end_s)) / (tb - ta)
-
-    return (bavg(k1) - bavg(k0)) / (t_s[k1] - t_s[k0])
+    # the ends of both boundary means of every window, the ramp's integral at all four at once (a
+    # wind's search evaluates this for hundreds of candidate windows)
+    ends = np.stack([t_s[k1 + h], t_s[k1 - h], t_s[k0 + h], t_s[k0 - h]])
+    columns = np.ndim(start_s) > 0 or np.ndim(end_s) > 0
+    ramp = ramp_integral(ends[:, None, :] if columns else ends, start_s, end_s)
+    b1 = (ramp[0] - ramp[1]) / (ends[0] - ends[1])
+    b0 = (ramp[2] - ramp[3]) / (ends[2] - ends[3])
+    return (b1 - b0) / (t_s[k1] - t_s[k0])
 
 
 def locate(e: np.ndarray, t_s: np.ndarray, k0: np.ndarray, k1: np.ndarray, h: int,
