@@ -440,6 +440,23 @@ def test_a_lossy_flows_delay_is_not_pulled_towards_the_bridged_guess():
     assert abs(best - 0.01) <= 0.0005
 
 
+def _two_tone_attitude(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(pitch, roll) of two tones each (rad), and the four tones' angular frequencies (rad/s)."""
+    w = 2 * np.pi * np.array([0.9, 2.3, 1.1, 1.9])
+    pitch = 0.03 * np.sin(w[0] * t) + 0.02 * np.sin(w[1] * t + 0.5)
+    roll = 0.03 * np.sin(w[2] * t + 1.0) + 0.02 * np.sin(w[3] * t)
+    return pitch, roll, w
+
+
+def _set_paper_flow(data: FlightData, t: np.ndarray, pitch: np.ndarray, roll: np.ndarray, gain: float) -> None:
+    """The flow of the paper's model at range 1 m with a rotation gain: phi = gain s (angle -
+    angle0) - integral(v), v' = s g tan(angle), as each frame's increment."""
+    for name, sgn, ang in (("dphi_x_rad", -1.0, pitch), ("dphi_y_rad", 1.0, roll)):
+        v = np.r_[0.0, np.cumsum(0.5 * np.diff(t) * sgn * 9.81 * (np.tan(ang[1:]) + np.tan(ang[:-1])))]
+        y = np.r_[0.0, np.cumsum(0.5 * np.diff(t) * (v[1:] + v[:-1]))]
+        setattr(data, name, np.r_[0.0, np.diff(gain * sgn * ang - y)])
+
+
 @pytest.mark.parametrize("gyro_noise", [0.0, 0.5])
 def test_a_tie_between_rotation_sources_goes_to_the_gyro(gyro_noise):
     """The flow's rotation source: the attitude estimate only where it explains the flow better
@@ -453,9 +470,7 @@ def test_a_tie_between_rotation_sources_goes_to_the_gyro(gyro_noise):
     cfg = load_config("configs/paper.toml")
     rng = np.random.default_rng(7)
     t = np.arange(2000) * 0.02
-    w = 2 * np.pi * np.array([0.9, 2.3, 1.1, 1.9])
-    pitch = 0.03 * np.sin(w[0] * t) + 0.02 * np.sin(w[1] * t + 0.5)
-    roll = 0.03 * np.sin(w[2] * t + 1.0) + 0.02 * np.sin(w[3] * t)
+    pitch, roll, w = _two_tone_attitude(t)
     gy = 0.03 * w[0] * np.cos(w[0] * t) + 0.02 * w[1] * np.cos(w[1] * t + 0.5)
     gx = 0.03 * w[2] * np.cos(w[2] * t + 1.0) + 0.02 * w[3] * np.cos(w[3] * t)
     gy = gy + gyro_noise * rng.standard_normal(len(t))
@@ -464,12 +479,7 @@ def test_a_tie_between_rotation_sources_goes_to_the_gyro(gyro_noise):
     ang_x, fine_x = gyro_spline(t, t, gx, 0.6)
     data = _flight(t, pitch, roll, gy, gx, gyro_angle_x_rad=ang_x, gyro_angle_y_rad=ang_y,
                    gyro_fine_x_rad_s=fine_x, gyro_fine_y_rad_s=fine_y)
-    # the flow of the paper's model (range 1 m) with a rotation gain of 1.15:
-    # phi = 1.15 s (angle - angle0) - integral(v), v' = s g tan(angle)
-    for name, sgn, ang in (("dphi_x_rad", -1.0, pitch), ("dphi_y_rad", 1.0, roll)):
-        v = np.r_[0.0, np.cumsum(0.5 * np.diff(t) * sgn * 9.81 * (np.tan(ang[1:]) + np.tan(ang[:-1])))]
-        y = np.r_[0.0, np.cumsum(0.5 * np.diff(t) * (v[1:] + v[:-1]))]
-        setattr(data, name, np.r_[0.0, np.diff(1.15 * sgn * ang - y)])
+    _set_paper_flow(data, t, pitch, roll, gain=1.15)
     g, _fp, state = flow_group(data, cfg)
     chose_gyro = [n for n in data.notes if n.startswith("the flow's rotation from the gyro")]
     if gyro_noise == 0.0:
@@ -669,9 +679,7 @@ def test_the_flow_messages_body_rate_takes_no_regressor_from_its_own_gyro(seed):
     cfg = load_config("configs/paper.toml")
     rng = np.random.default_rng(seed)
     t = np.arange(3000) * 0.02
-    w = 2 * np.pi * np.array([0.9, 2.3, 1.1, 1.9])
-    pitch = 0.03 * np.sin(w[0] * t) + 0.02 * np.sin(w[1] * t + 0.5)
-    roll = 0.03 * np.sin(w[2] * t + 1.0) + 0.02 * np.sin(w[3] * t)
+    pitch, roll, _w = _two_tone_attitude(t)
     # the gyro as ArduPilot's flow message carries it: the mean rate over each frame, plus noise
     gy, gx = (np.diff(a, prepend=a[0] - (a[1] - a[0])) / 0.02 + 0.1 * rng.standard_normal(len(t))
               for a in (pitch, roll))
@@ -679,10 +687,7 @@ def test_the_flow_messages_body_rate_takes_no_regressor_from_its_own_gyro(seed):
     ang_x, fine_x = gyro_spline(t, t, gx, 0.6)
     data = _flight(t, pitch, roll, gy, gx, gyro_angle_x_rad=ang_x, gyro_angle_y_rad=ang_y,
                    gyro_fine_x_rad_s=fine_x, gyro_fine_y_rad_s=fine_y, flow_body_x_rad_s=gx, flow_body_y_rad_s=gy)
-    for name, sgn, ang in (("dphi_x_rad", -1.0, pitch), ("dphi_y_rad", 1.0, roll)):
-        v = np.r_[0.0, np.cumsum(0.5 * np.diff(t) * sgn * 9.81 * (np.tan(ang[1:]) + np.tan(ang[:-1])))]
-        y = np.r_[0.0, np.cumsum(0.5 * np.diff(t) * (v[1:] + v[:-1]))]
-        setattr(data, name, np.r_[0.0, np.diff(sgn * ang - y)])
+    _set_paper_flow(data, t, pitch, roll, gain=1.0)
     g, _fp, state = flow_group(data, cfg, source="flow")
     assert state.source == "flow"
 
