@@ -728,15 +728,11 @@ def gyro_angles(data: FlightData, gyro_lag_s: float = 0.0) -> GyroAngles | None:
     if np.mean(data.gyro_rec) < 0.75:
         return None
     angles = []
-    long_segments: list[tuple[int, int]] = []
+    long_segments = [(a0, b0) for a0, b0 in data.segments() if b0 - a0 >= 30]
     for ang, gyr, gang, gfine in ((data.pitch_rad, data.gyro_y_rad_s, data.gyro_angle_y_rad, data.gyro_fine_y_rad_s),
                                   (data.roll_rad, data.gyro_x_rad_s, data.gyro_angle_x_rad, data.gyro_fine_x_rad_s)):
         G_all = np.full(data.n, np.nan)
-        long_segments = []
-        for a0, b0 in data.segments():
-            if b0 - a0 < 30:
-                continue
-            long_segments.append((a0, b0))
+        for a0, b0 in long_segments:
             t = data.t_s[a0:b0]
             g = gyr[a0:b0]
             if gang is not None and gfine is not None and np.all(np.isfinite(gang[a0:b0])) \
