@@ -55,3 +55,35 @@ def test_repeated_flights_of_one_vehicle_agree_within_their_stated_uncertainty(t
     assert checked >= 3  # bias x, y and the drag at least
     if known:
         pytest.xfail("; ".join(known))
+
+
+def test_a_reflown_flights_gyro_bias_pulls_are_within_the_stated_sigma(tmp_path: Path) -> None:
+    """``--reflight``: the same flight flown again with new noise draws, the truth's effects refitted
+    in each. A 40 s flight with a gyro bias only (measured by the gyro channel at every frame): two
+    re-flights give both axes' bias within the matrix's tolerance, each pull (fit - truth) / stated
+    sigma under 4 (a sigma stated 4 times too small would put most beyond), and the pull is that
+    ratio of the row's own numbers."""
+    import dataclasses
+    import math
+
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import repeat_flights as rf
+
+    from simvehicle.engines import flightgen as fg
+
+    sp = fg.draw_spec(4242)
+    prof = fg.draw_profile(np.random.default_rng([4242, 13]), sp.warmup_s + 40.0, 1.5, False, 1.5)
+    truth = {"gyro_bias": {"bias_x": 0.02, "bias_y": -0.015}}
+    sp = dataclasses.replace(sp, flight=prof, duration_s=40.0, effects=truth, noise=rf.NOISE)
+    rows = rf.reflight_pulls(sp, 2, tmp_path, progress=False)
+    got = {(r["reflight"], r["param"]): r for r in rows if r["effect"] == "gyro_bias"}
+    assert sorted(got) == [(0, "bias_x"), (0, "bias_y"), (1, "bias_x"), (1, "bias_y")]
+    _kind, tol = TOLERANCES["gyro_bias"]["bias_x"]
+    for (_r, k), row in got.items():
+        assert abs(row["value"] - truth["gyro_bias"][k]) <= tol
+        assert row["sigma"] > 0 and abs(row["pull"]) < 4.0
+        assert math.isclose(row["pull"], (row["value"] - row["truth"]) / row["sigma"])
+    n, w1, w2, med = rf.pull_summary([1.5, -0.5, 3.0, math.inf])
+    assert (n, w1, w2, med) == (3, 1 / 3, 2 / 3, 1.5)
