@@ -344,7 +344,8 @@ def _check_held_back(held: FlightData, cfg: Config, results: dict[str, GroupResu
     ga, _ap = attitude_group(held, cfg)
     gg, _gp = gyro_group(held)
     gf, _fp, st = flow_group(held, cfg, gyro_lag_s=fstate.lag_s, p_anchor=results["flow"].final.p,
-                             source=fstate.source, refine_lag=False)  # the fit's rotation source and lag
+                             source=fstate.source, refine_lag=False,
+                             accelerometer=fstate.accelerometer)  # the fit's rotation source, lag and translation
     st.window = fstate.window  # the wind where the fit put it
     said = []
     for g in (ga, gg, gf):
@@ -426,10 +427,10 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
         # with a large geometry effect chosen (a 12 deg yaw, a 20 % scale), its second-order share
         # would be fitted as another effect, so the group is built again about the chosen model and
         # the selection rerun from there (``FlowProblem.anchor``)
-        data.notes[:] = notes + [n for n in (fstate.source_note, fstate.lag_note) if n]
+        data.notes[:] = notes + [n for n in (fstate.source_note, fstate.lag_note, fstate.accel_note) if n]
         gf, fp, fstate = flow_group(data, cfg, gyro_lag_s=fstate.lag_s, refine_lag=False,
                                     p_anchor=results["flow"].final.p,
-                                    source=fstate.source)
+                                    source=fstate.source, accelerometer=fstate.accelerometer)
         results["flow"] = _fit_group(gf, settings, t0)
     timings["flow_s"] = time.perf_counter() - t
     step(STAGES[3])

@@ -198,12 +198,16 @@ class FlowProblem:
     force-balance boundaries; ``average_s``: the velocity at a boundary is the mean over this span;
     ``max_flow_windows``: a longer recording uses this many evenly spread flow windows (25 min of
     1 s windows pin the sensor geometry far below any tolerance; the force channel uses every window).
+    ``accelerometer``: the flow channels' translation from the tilt's acceleration plus the
+    horizontal force the accelerometer measures (``FlightData.accel_x_m_s2``: drag, wind and
+    turbulence, which the tilt does not give; the force channels keep the tilt alone, they measure
+    that force).
     """
 
     def __init__(self, data: FlightData, *, mass_kg: float, gravity_m_s2: float, flow_window_s: float = 1.0,
                  force_window_s: float = 1.0, average_s: float = 0.2, max_flow_windows: int = 1000,
                  rotation_angles: tuple[np.ndarray, np.ndarray] | None = None,
-                 scene_angle: np.ndarray | None = None) -> None:
+                 scene_angle: np.ndarray | None = None, accelerometer: bool = False) -> None:
         self.data = data
         self.mass_kg = mass_kg
         self.g = gravity_m_s2
@@ -226,6 +230,7 @@ class FlowProblem:
         ang = (data.pitch_rad, data.roll_rad)
         #: the angles the rotation is taken from (pitch, roll): the recorded attitude, or a fused one
         rot = rotation_angles if rotation_angles is not None else ang
+        self.rotation_angles = rotation_angles
         dphi = (data.dphi_x_rad, data.dphi_y_rad)
         flow_w: list[np.ndarray] = []
         force_w: list[np.ndarray] = []
@@ -242,6 +247,10 @@ class FlowProblem:
                 # carries the body rate times rz / A, i.e. integral(dR / A)
                 inc_r = np.diff(self.R[i, a:b]) / (0.5 * (self.A[a + 1:b] + self.A[a:b - 1]))
                 self.RA[i, a:b] = np.concatenate([[0.0], np.cumsum(inc_r)])
+            if accelerometer and data.accel_x_m_s2 is not None and data.accel_y_m_s2 is not None:
+                # the body axes' specific force, levelled: what pushes the vehicle besides its tilt
+                for i, (acc_b, tilt) in enumerate(((data.accel_x_m_s2, ang[0]), (data.accel_y_m_s2, ang[1]))):
+                    self.V[i, a:b] += _cumtrapz(np.nan_to_num(acc_b[a:b]) / np.cos(tilt[a:b]), ts)
             sp = CubicSpline(ts, self.R[:, a:b].T, axis=0)
             self._splines.append((a, b, sp))
             self.Rdot[:, a:b] = sp(ts, 1).T

@@ -381,6 +381,9 @@ class FlowGroupState:
         #: the flow's rotation source (``ROTATION_SOURCES``) and the note that said why, when chosen
         self.source = "attitude"
         self.source_note: str | None = None
+        #: whether the flow channels' translation takes the accelerometer's force too (``flow_group``)
+        self.accelerometer = False
+        self.accel_note: str | None = None
         #: the gyro lag undone in the flow's rotation (``_flow_lag``) and the note that said so
         self.lag_s = 0.0
         self.lag_note: str | None = None
@@ -977,7 +980,8 @@ ROTATION_SOURCES: dict[str, str | None] = {"attitude": "attitude", "gyro": "gyro
 
 
 def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor: np.ndarray | None = None,
-               source: str | None = None, refine_lag: bool = True) -> tuple[Group, FlowProblem, FlowGroupState]:
+               source: str | None = None, refine_lag: bool = True,
+               accelerometer: bool | None = None) -> tuple[Group, FlowProblem, FlowGroupState]:
     """The flow group, its rotation taken from the source that explains the recorded flow better:
     the attitude estimate, or the gyro fused with it (``rotation_angles``), or the flow message's
     own body rate. The flow sees the true rotation, so the source nearer the truth leaves the
@@ -987,7 +991,11 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
     same; the part of a long flight held back from the fit, judged with the fit's source); when
     this flight has no such source, the choice is made. ``refine_lag``: the gyro lag undone in the
     gyro's rotation is timed for the flow (``_flow_lag``; the lag used is ``FlowGroupState.lag_s``);
-    False: ``gyro_lag_s`` as it is (the group rebuilt, or the held-back part, with the fit's lag)."""
+    False: ``gyro_lag_s`` as it is (the group rebuilt, or the held-back part, with the fit's lag).
+    ``accelerometer``: the flow channels' translation with the accelerometer's horizontal force
+    (True) or from the tilt alone (False); None: with it when the recording has an accelerometer
+    and that leaves a nominal flow residual more than ``SOURCE_TIE`` smaller
+    (``FlowGroupState.accelerometer``, and a note)."""
     if source is not None and source not in ROTATION_SOURCES:
         raise ValueError(f"flow_group: no rotation source {source!r} (one of {', '.join(ROTATION_SOURCES)})")
     kw: dict[str, Any] = dict(mass_kg=cfg.airframe.mass_kg, gravity_m_s2=cfg.airframe.gravity_m_s2)
@@ -1042,6 +1050,21 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
             gyro_lag_s = lag_flow
             gyro = gyro_angles(data, gyro_lag_s)
             fp = FlowProblem(data, rotation_angles=rotation_angles(data, gyro_lag_s, gyro=gyro), **kw)
+    accel_note = None
+    if accelerometer is None and data.accel_x_m_s2 is not None:
+        # the translation: the tilt's alone, or with the horizontal force the accelerometer measures
+        # (turbulence, wind, drag: the loop answers turbulence with tilt, so a translation without it
+        # is off by what the loop cancels, and that follows every regressor)
+        fa = FlowProblem(data, rotation_angles=fp.rotation_angles, accelerometer=True, **kw)
+        n_tilt, n_acc = _flow_noise(fp), _flow_noise(fa)
+        accelerometer = bool(n_acc < (1.0 - SOURCE_TIE) * n_tilt)
+        if accelerometer:
+            fp = fa
+            accel_note = (f"the flow's translation from the tilt and the accelerometer's horizontal force (it explains "
+                          f"the flow best: residual {n_acc:.3g} rad against {n_tilt:.3g} rad from the tilt alone)")
+            data.notes.append(accel_note)
+    elif accelerometer:
+        fp = FlowProblem(data, rotation_angles=fp.rotation_angles, accelerometer=True, **kw)
     base = fp
     # the effects' regressors from sources whose noise the residual does not share (``anchor``):
     # the rotation from the gyro, the velocity from the tilt above a low crossover
@@ -1070,6 +1093,8 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
                           f"is the loop's answer to the flow's own rounding")
     state = FlowGroupState(fp)
     state.source, state.source_note = chosen, source_note
+    state.accelerometer = bool(accelerometer)
+    state.accel_note = accel_note
     state.lag_s = gyro_lag_s
     state.lag_note = lag_note
     e0 = base.flow_residual(p_a)
