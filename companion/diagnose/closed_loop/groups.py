@@ -1051,20 +1051,21 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
             gyro = gyro_angles(data, gyro_lag_s)
             fp = FlowProblem(data, rotation_angles=rotation_angles(data, gyro_lag_s, gyro=gyro), **kw)
     accel_note = None
-    if accelerometer is None and data.accel_x_m_s2 is not None:
+    if accelerometer is not False and data.accel_x_m_s2 is not None:
         # the translation: the tilt's alone, or with the horizontal force the accelerometer measures
         # (turbulence, wind, drag: the loop answers turbulence with tilt, so a translation without it
         # is off by what the loop cancels, and that follows every regressor)
         fa = FlowProblem(data, rotation_angles=fp.rotation_angles, accelerometer=True, **kw)
-        n_tilt, n_acc = _flow_noise(fp), _flow_noise(fa)
-        accelerometer = bool(n_acc < (1.0 - SOURCE_TIE) * n_tilt)
+        if accelerometer is None:
+            n_tilt, n_acc = _flow_noise(fp), _flow_noise(fa)
+            accelerometer = bool(n_acc < (1.0 - SOURCE_TIE) * n_tilt)
+            if accelerometer:
+                accel_note = (f"the flow's translation from the tilt and the accelerometer's horizontal force (it "
+                              f"explains the flow best: residual {n_acc:.3g} rad against {n_tilt:.3g} rad from the "
+                              f"tilt alone)")
+                data.notes.append(accel_note)
         if accelerometer:
             fp = fa
-            accel_note = (f"the flow's translation from the tilt and the accelerometer's horizontal force (it explains "
-                          f"the flow best: residual {n_acc:.3g} rad against {n_tilt:.3g} rad from the tilt alone)")
-            data.notes.append(accel_note)
-    elif accelerometer:
-        fp = FlowProblem(data, rotation_angles=fp.rotation_angles, accelerometer=True, **kw)
     base = fp
     # the effects' regressors from sources whose noise the residual does not share (``anchor``):
     # the rotation from the gyro, the velocity from the tilt above a low crossover
