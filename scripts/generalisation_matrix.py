@@ -334,6 +334,9 @@ def _noise_words(n: dict[str, Any]) -> str:
         w.append(f"turb {n['turbulence_n']:.2f} N")
     if n.get("record_jitter_s"):
         w.append(f"jit {1e3 * n['record_jitter_s']:.1f} ms")
+    acc = math.hypot(n.get("accel_white_m_s2", 0.0), n.get("accel_vibration_m_s2", 0.0) / math.sqrt(2))
+    if acc:
+        w.append(f"acc {acc:.2f} m/s²")
     return ", ".join(w) or "-"
 
 
@@ -617,7 +620,9 @@ def markdown(results: list[dict[str, Any]], *, n: int, seed: int, timeout_s: flo
         "Omega_p 4-15 rad/s, zeta 0.5-1.2; profile `paper` (counts, Q drawn) or `ardupilot` (rad/s rates, ms "
         "times) ~20 %; ATTITUDE white (0-0.2 deg) and/or Gauss-Markov (0-0.3 deg, tau 0.1-1 s) noise; +-1 "
         "count errors on 0-5 % of frames; gyro white noise; range noise 0-2 cm; record-time jitter 0-5 ms, "
-        "sensor-time jitter +-1 ms; turbulence 0-0.4 N (Gauss-Markov, tau 0.2-1 s); recording loss none / "
+        "sensor-time jitter +-1 ms; turbulence 0-0.4 N (Gauss-Markov, tau 0.2-1 s); accelerometer white noise "
+        "0.02-0.5 m/s² (80 %), bias up to 0.2 m/s² (60 %), vibration alias 0-0.5 m/s² at 1-24 Hz (40 %; generator "
+        "version 4); recording loss none / "
         "random 0-20 % / 0.5 s bursts / both; none (20 %), one or two effects sized from the issue's ranges. "
         "Forces are kept under half of what the 20 deg tilt limit holds (the wind's upper bound and the top "
         "speed with drag shrink for light vehicles); a flight is *flyable* when the companion saturated < 5 % of "

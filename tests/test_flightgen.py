@@ -180,6 +180,7 @@ def test_drawn_specs_cover_the_issue_ranges() -> None:
     assert {s.loss.kind for s in specs} == {"none", "random", "bursts", "both"}
     assert 0.12 <= np.mean([s.sensors.profile == "ardupilot" for s in specs]) <= 0.28
     assert {len(s.effects) for s in specs} == {0, 1, 2}
+    assert 0.1 <= np.mean([s.noise.accel_white_m_s2 == 0 for s in specs]) <= 0.3  # some without accelerometer noise
     seen = set()
     for s in specs:
         v = s.vehicle
@@ -189,6 +190,9 @@ def test_drawn_specs_cover_the_issue_ranges() -> None:
         assert s.noise.flow_count_error_frac <= 0.05 and s.noise.range_noise_m <= 0.02
         assert s.noise.record_jitter_s <= 0.005 and s.noise.sensor_time_jitter_s <= 0.001
         assert s.noise.turbulence_n <= 0.4 and s.loss.random_frac <= 0.2
+        assert s.noise.accel_white_m_s2 == 0 or 0.02 <= s.noise.accel_white_m_s2 <= 0.5
+        assert max(abs(s.noise.accel_bias_x_m_s2), abs(s.noise.accel_bias_y_m_s2)) <= 0.2
+        assert s.noise.accel_vibration_m_s2 <= 0.5 and 1.0 <= s.noise.accel_vibration_hz <= 24.0
         for name, p in s.effects.items():
             seen.add(name)
             if name == "linear_drag":
@@ -275,6 +279,36 @@ def test_a_steady_wind_is_held_by_tilting_against_it() -> None:
     mg = spec.vehicle.mass_kg * spec.vehicle.gravity_m_s2
     assert tail_mean(fl.truth["pitch"]) == pytest.approx(math.atan(1.5 / mg), abs=0.003)  # nose up against +x
     assert tail_mean(fl.truth["roll"]) == pytest.approx(math.atan(1.0 / mg), abs=0.003)  # right down against -y
+
+
+def _decoded(fl: fg.Flight, kind: str) -> list:
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    parser = mav.MAVLink(None)
+    return [parser.decode(bytearray(b)) for _t, _c, b, k, _f in fl.packets if k == kind]
+
+
+def test_the_accelerometer_carries_its_drawn_noise_and_changes_nothing_else() -> None:
+    """RAW_IMU xacc/yacc (milli-g) minus the noise-free flight's: mean = the bias, standard deviation
+    = sqrt(white^2 + vibration^2 / 2) (a sinusoid's rms), to the sampling error of 1000 frames (about
+    2 % on the sd, 0.01 m/s^2 on the mean) and the 1 milli-g rounding; the loop does not read the
+    accelerometer, so the flow and the companion's commands are the same message for message."""
+    spec = quiet_spec(duration=20.0)
+    nz = fg.Noise(accel_white_m_s2=0.3, accel_bias_x_m_s2=0.1, accel_bias_y_m_s2=-0.15, accel_vibration_m_s2=0.2,
+                  accel_vibration_hz=7.3)
+    clean, noisy = fg.simulate(spec), fg.simulate(dataclasses.replace(spec, noise=nz))
+    g_mg = spec.vehicle.gravity_m_s2 / 1000.0
+    a0, a1 = _decoded(clean, "RAW_IMU"), _decoded(noisy, "RAW_IMU")
+    dx = np.array([(m1.xacc - m0.xacc) * g_mg for m0, m1 in zip(a0, a1)])
+    dy = np.array([(m1.yacc - m0.yacc) * g_mg for m0, m1 in zip(a0, a1)])
+    assert len(dx) > 1000
+    sd = math.hypot(0.3, 0.2 / math.sqrt(2))
+    for d, bias in ((dx, 0.1), (dy, -0.15)):
+        assert float(np.mean(d)) == pytest.approx(bias, abs=0.04)
+        assert float(np.std(d)) == pytest.approx(sd, rel=0.08)
+    for kind in ("OPTICAL_FLOW", "SET_ATTITUDE_TARGET", "ATTITUDE"):
+        assert [m.to_dict() for m in _decoded(clean, kind)] == [m.to_dict() for m in _decoded(noisy, kind)], kind
+    assert [m.xgyro for m in a0] == [m.xgyro for m in a1]
 
 
 def read_messages(path: Path) -> dict[str, list]:

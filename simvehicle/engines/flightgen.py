@@ -35,7 +35,9 @@ continuously integrated (eq. 9-11) in its own axes (``flow_yaw_misalignment`` tu
 ``yaw``: ``s_x = cos(yaw) phi_x + sin(yaw) phi_y``, ``s_y = -sin(yaw) phi_x + cos(yaw) phi_y``)
 with ``scale x Q`` rad per count (``flow_scale``), sampled ``delay`` before the frame time
 (``flow_delay``). The gyro reads the body rates, low-pass filtered (``gyro_lag``, a continuous
-first-order state), plus ``gyro_bias``, plus white noise, in whole mrad/s. ATTITUDE is the true
+first-order state), plus ``gyro_bias``, plus white noise, in whole mrad/s. The accelerometer reads
+the horizontal specific force of the model above, plus white noise, a bias and a vibration
+sinusoid (``draw_accel_noise``; generator version 4), in whole milli-g. ATTITUDE is the true
 attitude plus white and first-order Gauss-Markov noise (an EKF output). The command computed from
 frame k acts from frame k+1 (plus ``attitude_delay``).
 
@@ -65,7 +67,7 @@ from companion.rotation import euler_to_quaternion
 from companion.step.core import CompanionCore
 from companion.step.profiles import Profile
 
-GENERATOR_VERSION = 3
+GENERATOR_VERSION = 4
 
 EFFECT_NAMES = ("linear_drag", "quadratic_drag", "gyro_bias", "flow_scale", "flow_delay", "flow_yaw_misalignment",
                 "attitude_dynamics", "range_offset", "wind_force", "attitude_delay", "flow_rotation_gain",
@@ -181,6 +183,13 @@ class Noise:
     sensor_time_jitter_s: float = 0.0
     turbulence_n: float = 0.0
     turbulence_tau_s: float = 1.0
+    # the accelerometer (RAW_IMU xacc, yacc): white noise, a constant bias per axis, and a rotor
+    # vibration left after the autopilot's filter (a sinusoid at its alias below the frame rate)
+    accel_white_m_s2: float = 0.0
+    accel_bias_x_m_s2: float = 0.0
+    accel_bias_y_m_s2: float = 0.0
+    accel_vibration_m_s2: float = 0.0
+    accel_vibration_hz: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -317,6 +326,20 @@ def draw_noise(rng: np.random.Generator) -> Noise:
     )
 
 
+def draw_accel_noise(rng: np.random.Generator) -> dict[str, float]:
+    """The accelerometer's noise (``Noise.accel_*``), from its own stream so that the other draws
+    of a seed stay what they were before it was added (generator version 3). A filtered flight
+    accelerometer carries about 0.02-0.5 m/s² of noise, a residual bias of up to 0.2 m/s² and
+    what is left of the rotor vibration; some recordings have none (a simulator without IMU noise)."""
+    white = math.exp(_u(rng, math.log(0.02), math.log(0.5))) if rng.random() < 0.8 else 0.0
+    biased = rng.random() < 0.6
+    bx, by = _u(rng, -0.2, 0.2), _u(rng, -0.2, 0.2)
+    vib = _u(rng, 0.0, 0.5) if rng.random() < 0.4 else 0.0
+    return dict(accel_white_m_s2=white, accel_bias_x_m_s2=bx if biased else 0.0,
+                accel_bias_y_m_s2=by if biased else 0.0, accel_vibration_m_s2=vib,
+                accel_vibration_hz=_u(rng, 1.0, 24.0))
+
+
 def draw_loss(rng: np.random.Generator, t0_s: float, duration_s: float) -> Loss:
     """none 40 %, random 0-20 % 25 %, bursts of 0.5 s 20 %, both 15 %."""
     u = rng.random()
@@ -410,7 +433,7 @@ def draw_spec(seed: int, *, clean_share: float = 0.2, ardupilot_share: float = 0
                       range_lead_s=_u(rng, 0.0, 0.005), companion_proc_s=_u(rng, 0.0005, 0.003),
                       range_min_m=rmin, range_max_m=rmax, base_config=base)
     effects = draw_effects(rng, vehicle, clean_share)
-    noise = draw_noise(rng)
+    noise = dataclasses.replace(draw_noise(rng), **draw_accel_noise(np.random.default_rng([int(seed), 14])))
     loss = draw_loss(rng, warmup, duration)
     constant_alt = rng.random() < 0.2
     alt0 = _u(rng, 0.5, 3.0)
@@ -676,6 +699,11 @@ def simulate(spec: FlightSpec) -> Flight:
     count_err = np.where(rng.random((n_frames, 2)) < nz.flow_count_error_frac,
                          np.where(rng.random((n_frames, 2)) < 0.5, -1, 1), 0)
     jit = nz.sensor_time_jitter_s * rng.uniform(-1.0, 1.0, (n_frames, 4))  # flow, imu, attitude, range
+    arng = np.random.default_rng([spec.seed, 97])  # the accelerometer's own stream (generator version 4)
+    acc_noise = (nz.accel_white_m_s2 * arng.standard_normal((n_frames, 2))
+                 + np.array([nz.accel_bias_x_m_s2, nz.accel_bias_y_m_s2])
+                 + nz.accel_vibration_m_s2 * np.sin(2 * math.pi * nz.accel_vibration_hz * t_frames[:, None]
+                                                    + arng.uniform(0.0, 2 * math.pi, 2)))
 
     bias = e.get("gyro_bias", {})
     bias_x, bias_y = bias.get("bias_x", 0.0), bias.get("bias_y", 0.0)
@@ -730,8 +758,10 @@ def simulate(spec: FlightSpec) -> Flight:
         ax = (fx[k] - par[2] * s_imu[VX] - par[3] * s_imu[VX] * abs(s_imu[VX])) / par[1]
         ay = (fy[k] - par[2] * s_imu[VY] - par[3] * s_imu[VY] * abs(s_imu[VY])) / par[1]
         g0 = veh.gravity_m_s2
+        acc_x = math.cos(th_i) * ax + acc_noise[k, 0]
+        acc_y = math.cos(ph_i) * ay + acc_noise[k, 1]
         imu = venc.raw_imu_encode(int(round((tb + t - sen.imu_lead_s + jit[k, 1]) * 1e6)),
-                                  _i16(1000 * math.cos(th_i) * ax / g0), _i16(1000 * math.cos(ph_i) * ay / g0),
+                                  _i16(1000 * acc_x / g0), _i16(1000 * acc_y / g0),
                                   _i16(-1000 / (math.cos(th_i) * math.cos(ph_i))), _i16(1000 * g_x),
                                   _i16(1000 * g_y), _i16(1000 * 0.0), 0, 0, 0)
         h_r = _height(t - sen.range_lead_s, kt, kh)
