@@ -299,8 +299,8 @@ def test_the_accelerometer_carries_its_drawn_noise_and_changes_nothing_else() ->
     clean, noisy = fg.simulate(spec), fg.simulate(dataclasses.replace(spec, noise=nz))
     g_mg = spec.vehicle.gravity_m_s2 / 1000.0
     a0, a1 = _decoded(clean, "RAW_IMU"), _decoded(noisy, "RAW_IMU")
-    dx = np.array([(m1.xacc - m0.xacc) * g_mg for m0, m1 in zip(a0, a1)])
-    dy = np.array([(m1.yacc - m0.yacc) * g_mg for m0, m1 in zip(a0, a1)])
+    dx = np.array([(m1.xacc - m0.xacc) * g_mg for m0, m1 in zip(a0, a1, strict=True)])
+    dy = np.array([(m1.yacc - m0.yacc) * g_mg for m0, m1 in zip(a0, a1, strict=True)])
     assert len(dx) > 1000
     sd = math.hypot(0.3, 0.2 / math.sqrt(2))
     for d, bias in ((dx, 0.1), (dy, -0.15)):
