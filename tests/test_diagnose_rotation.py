@@ -485,6 +485,10 @@ def test_the_accelerometer_gives_the_translation_the_tilt_does_not():
     rms = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731
     assert rms(tilt) > 1e-4
     assert rms(acc) < 0.01 * rms(tilt)
+    # a calibrated accelerometer's bias (0.15 and -0.1 m/s^2: 9 and 6 m/s over the minute if it
+    # were integrated) is not a push: it comes out against the flow's odometry
+    biased = dataclasses.replace(data, accel_x_m_s2=data.accel_x_m_s2 + 0.15, accel_y_m_s2=data.accel_y_m_s2 - 0.1)
+    assert rms(FlowProblem(biased, accelerometer=True, **kw).flow_residual(NOMINAL)) < 0.01 * rms(tilt)
     _g, _fp, state = flow_group(data, cfg)
     assert state.accelerometer and state.accel_note and "accelerometer" in state.accel_note
     # the same flight without the push, its accelerometer only noise
@@ -494,6 +498,27 @@ def test_the_accelerometer_gives_the_translation_the_tilt_does_not():
     _set_paper_flow(quiet, t, pitch, roll, gain=1.0)
     _g, _fp, state = flow_group(quiet, cfg)
     assert not state.accelerometer and state.accel_note is None
+
+
+def test_the_accelerometer_bias_comes_out_against_the_flow_and_the_true_force_stays():
+    """One 120 s segment: the vehicle held against a steady 1.1 m/s^2 of drag by its tilt (the
+    tilt's velocity ramps down at 1.1 m/s^2 and the accelerometer's up), plus a gust of 0.3 m/s^2
+    at 0.5 Hz; its true velocity a bounded sinusoid, which the flow's odometry follows. With a
+    bias of 0.12 m/s^2 on the accelerometer, accel_bias_removed leaves the true accelerometer
+    velocity to 1e-9 m/s (a quadratic fit recovers a quadratic exactly); taking out the
+    accelerometer's mean instead would take the drag out with the bias, a ramp of 1.1 m/s^2."""
+    from companion.diagnose.closed_loop.flowmodel import _cumtrapz, accel_bias_removed
+
+    t = np.arange(6000) * 0.02
+    w = 2 * np.pi * 0.5
+    gust = 0.3 * np.sin(w * t)
+    v_tilt = _cumtrapz(np.full_like(t, -1.1), t)
+    v_acc_true = _cumtrapz(1.1 + gust, t)
+    x_flow = _cumtrapz(v_tilt + v_acc_true, t)
+    v = accel_bias_removed(_cumtrapz(1.1 + gust + 0.12, t), v_tilt, x_flow, t)
+    assert np.max(np.abs(v - v_acc_true)) < 1e-9
+    mean_removed = _cumtrapz(gust - np.mean(gust), t)
+    assert np.max(np.abs(mean_removed - v_acc_true)) > 100.0  # 1.1 m/s^2 for two minutes
 
 
 @pytest.mark.parametrize("gyro_noise", [0.0, 0.5])

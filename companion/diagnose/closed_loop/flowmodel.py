@@ -75,6 +75,31 @@ def _cumtrapz(y: np.ndarray, t: np.ndarray) -> np.ndarray:
     return out
 
 
+def accel_bias_removed(v_acc: np.ndarray, v_tilt: np.ndarray, x_flow: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``v_acc`` (the velocity the accelerometer's levelled force adds over one segment, m/s) less
+    the ramp b (t - t0) of a constant accelerometer bias b: the b whose ramp, integrated, best
+    explains (least squares, with a position and a velocity of its own) how the displacement of
+    ``v_tilt + v_acc`` drifts away from the flow's odometry ``x_flow`` (m) over the segment.
+
+    Why: a flight accelerometer keeps a bias of a tenth of a m/s^2 after calibration; integrated
+    over a minute's segment that is metres per second, far more than the forces it is there for.
+    Neither the accelerometer's own mean (a vehicle held against drag or wind for the whole
+    segment has a true mean force of 1 m/s^2 and more) nor a high-pass can tell the two apart;
+    the flow can: the vehicle's true velocity stays bounded, its odometry's curvature over the
+    segment is the true mean acceleration (read through the nominal geometry, which a scale error
+    changes by a share of that mean, small over any segment longer than a manoeuvre)."""
+    if len(t) < 4 or t[-1] <= t[0]:
+        return v_acc
+    tau = t - t[0]
+    d = _cumtrapz(v_tilt + v_acc, t) - x_flow
+    basis = np.stack([np.ones_like(tau), tau, 0.5 * tau * tau], axis=1)
+    ok = np.isfinite(d)
+    if ok.sum() < 4:
+        return v_acc
+    coef, *_ = np.linalg.lstsq(basis[ok], d[ok], rcond=None)
+    return v_acc - coef[2] * tau
+
+
 def ramp_integral(t: np.ndarray, start_s: float | np.ndarray, end_s: float | np.ndarray) -> np.ndarray:
     """G(t) = integral_0^t clip(tau - start, 0, end - start) dtau (s^2): the double integral of a
     unit force switched on over [start, end). Broadcasts (e.g. start, end of shape (G, 1))."""
@@ -234,6 +259,8 @@ class FlowProblem:
         dphi = (data.dphi_x_rad, data.dphi_y_rad)
         flow_w: list[np.ndarray] = []
         force_w: list[np.ndarray] = []
+        have_acc = accelerometer and data.accel_x_m_s2 is not None and data.accel_y_m_s2 is not None
+        v_acc = np.zeros((2, n)) if have_acc else None
         for a, b in data.segments():
             ts = t[a:b]
             for i in (0, 1):
@@ -247,10 +274,11 @@ class FlowProblem:
                 # carries the body rate times rz / A, i.e. integral(dR / A)
                 inc_r = np.diff(self.R[i, a:b]) / (0.5 * (self.A[a + 1:b] + self.A[a:b - 1]))
                 self.RA[i, a:b] = np.concatenate([[0.0], np.cumsum(inc_r)])
-            if accelerometer and data.accel_x_m_s2 is not None and data.accel_y_m_s2 is not None:
+            if v_acc is not None and data.accel_x_m_s2 is not None and data.accel_y_m_s2 is not None:
                 # the body axes' specific force, levelled: what pushes the vehicle besides its tilt
+                # (its bias taken out below, once the flow's odometry is at hand)
                 for i, (acc_b, tilt) in enumerate(((data.accel_x_m_s2, ang[0]), (data.accel_y_m_s2, ang[1]))):
-                    self.V[i, a:b] += _cumtrapz(np.nan_to_num(acc_b[a:b]) / np.cos(tilt[a:b]), ts)
+                    v_acc[i, a:b] = _cumtrapz(np.nan_to_num(acc_b[a:b]) / np.cos(tilt[a:b]), ts)
             sp = CubicSpline(ts, self.R[:, a:b].T, axis=0)
             self._splines.append((a, b, sp))
             self.Rdot[:, a:b] = sp(ts, 1).T
@@ -297,6 +325,13 @@ class FlowProblem:
         self._form_drag_cache = _Cache()
         self._wind_cache = _Cache(4)
         self._phi_cache = _Cache(3)
+        if v_acc is not None:
+            # the accelerometer's velocity, its bias removed against the flow's odometry under the
+            # nominal geometry (``accel_bias_removed``), joins the tilt's in the flow channels
+            X, _ = self.flow_velocity(NOMINAL)
+            for a, b in data.segments():
+                for i in (0, 1):
+                    self.V[i, a:b] += accel_bias_removed(v_acc[i, a:b], self.V[i, a:b], X[i, a:b], t[a:b])
         self._dPhi = np.zeros_like(self.Phi)
         for a, b in data.segments():
             if b - a > 1:

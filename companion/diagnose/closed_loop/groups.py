@@ -1094,7 +1094,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
                           f"is the loop's answer to the flow's own rounding")
     state = FlowGroupState(fp)
     state.source, state.source_note = chosen, source_note
-    state.accelerometer = bool(accelerometer)
+    state.accelerometer = bool(accelerometer) and data.accel_x_m_s2 is not None  # asked for or chosen, and recorded
     state.accel_note = accel_note
     state.lag_s = gyro_lag_s
     state.lag_note = lag_note
