@@ -722,22 +722,16 @@ def test_no_instruments_where_the_gyro_is_logged_slower_than_the_frames():
     assert lag_by_instruments(GyroProblem(data), data, 5.0, 0.0) is None
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="known bias (docs/diagnose.md section 8): with the flow message's own body rate as the "
-                   "rotation source, the regressors' rotation from the gyro shares its noise; the attitude instead "
-                   "attenuates real effects (an instrument is needed)")
 @pytest.mark.parametrize("seed", [1, 2])
-def test_the_flow_messages_body_rate_takes_no_regressor_from_its_own_gyro(seed):
+def test_the_flow_messages_body_rate_is_fitted_with_the_attitude_as_instrument(seed):
     """ArduPilot's flow message carries the autopilot's gyro over each frame as its body rate, so
     its noise is the gyro's. With the flow's rotation from that body rate, regressors built from
     the gyro share the residual's noise (errors in variables): 0.1 rad/s of white noise on the
-    frames' mean rates reads as a flow delay of 6.8-7.3 ms and a rotation gain of 0.951-0.955 at
-    the exact model (one Gauss-Newton step from the nominal, as ``_stamp_alignment`` takes), both
-    beyond what a finding needs (2 ms, 1 %). Regressors from the attitude give 0.07-0.6 ms and
-    1.001-1.003 here, but on the matrix's flights that chose this source they attenuate real
-    effects (20 -> 15 and 16 -> 13 right); a gyro smoothed at 5 Hz leaves 1 ms and 0.98 (the
-    smoothing's own attenuation). What this asks for needs an instrument (the attitude) for the
-    gyro's regressors, not a replacement."""
+    frames' mean rates reads, by least squares at the exact model (one Gauss-Newton step from the
+    nominal), as a flow delay of about 7 ms and a rotation gain of about 0.95, both beyond what a
+    finding needs (2 ms, 1 %). The flow group then takes the same regressors built from the
+    attitude (0.1 deg of white noise of its own, independent) as instruments, Z'J d = -Z'r, and
+    the step reads under 1.5 ms and 1 %."""
     from companion.diagnose.closed_loop.groups import flow_group
 
     cfg = load_config("configs/paper.toml")
@@ -749,20 +743,25 @@ def test_the_flow_messages_body_rate_takes_no_regressor_from_its_own_gyro(seed):
               for a in (pitch, roll))
     ang_y, fine_y = gyro_spline(t, t, gy, 0.6)
     ang_x, fine_x = gyro_spline(t, t, gx, 0.6)
-    data = _flight(t, pitch, roll, gy, gx, gyro_angle_x_rad=ang_x, gyro_angle_y_rad=ang_y,
+    noise = np.radians(0.1) * rng.standard_normal((2, len(t)))
+    data = _flight(t, pitch + noise[0], roll + noise[1], gy, gx, gyro_angle_x_rad=ang_x, gyro_angle_y_rad=ang_y,
                    gyro_fine_x_rad_s=fine_x, gyro_fine_y_rad_s=fine_y, flow_body_x_rad_s=gx, flow_body_y_rad_s=gy)
     _set_paper_flow(data, t, pitch, roll, gain=1.0)
     g, _fp, state = flow_group(data, cfg, source="flow")
-    assert state.source == "flow"
+    assert state.source == "flow" and g.instrument is not None
 
-    def step(name: str, h: float = 1e-4) -> float:
-        def rows(d: float) -> np.ndarray:
-            p = g.nominal.copy()
-            p[IDX[name]] += d
-            r = g.residuals(p)
-            return np.concatenate([r[0], r[1]])
-        r0, j = rows(0.0), (rows(h) - rows(-h)) / (2 * h)
-        return float(-(j @ r0) / (j @ j))
+    def rows(fn, name: str, d: float) -> np.ndarray:
+        p = g.nominal.copy()
+        p[IDX[name]] += d
+        r = fn(p)
+        return np.concatenate([r[0], r[1]])
 
-    assert abs(step("delay")) < 1.5e-3
-    assert abs(step("gain")) < 0.01
+    def step(name: str, instrumented: bool, h: float = 1e-4) -> float:
+        r0 = rows(g.residuals, name, 0.0)
+        j = (rows(g.residuals, name, h) - rows(g.residuals, name, -h)) / (2 * h)
+        z = (rows(g.instrument, name, h) - rows(g.instrument, name, -h)) / (2 * h) if instrumented else j
+        return float(-(z @ r0) / (z @ j))
+
+    assert abs(step("delay", False)) > 3e-3 and step("gain", False) < -0.02  # least squares: the shared noise
+    assert abs(step("delay", True)) < 1.5e-3
+    assert abs(step("gain", True)) < 0.01

@@ -1108,6 +1108,22 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
         r = fp.force_residual(p, s, e)
         return [whiten[0](f[0]).ravel(), whiten[1](f[1]).ravel(), r[0], r[1]]
 
+    instrument = None
+    if chosen == "flow":
+        # the flow message's body rate is the autopilot's gyro over each frame, and the regressors'
+        # rotation is the gyro's: they share its noise (errors in variables: a hover read as a
+        # rotation gain of 0.5 and a flow delay of 26 ms). The same regressors built from the
+        # attitude, whose noise is its own, are the flow channels' instruments (Group.instrument)
+        att = (data.pitch_rad, data.roll_rad)
+        fi = FlowProblem(data, rotation_angles=att, scene_angle=regressor_scene_angle(base, att, p_a), **kw)
+        if not keep.all():
+            fi.keep_flow_windows(keep)
+        fi.anchor(base, p_a)
+
+        def instrument(p: np.ndarray) -> list[np.ndarray | None]:
+            f = fi.flow_residual(p)
+            return [whiten[0](f[0]).ravel(), whiten[1](f[1]).ravel(), None, None]
+
     tf = data.t_s[fp.flow.idx[:, WHITEN_ORDER:]].ravel() if len(fp.flow.idx) else np.zeros(0)
     tw = 0.5 * (fp.force.t_start_s + fp.force.t_end_s)
     a_min = float(np.nanmin(data.range_m))
@@ -1134,7 +1150,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
             ("flow_lever_arm", ("rz",), None),
             ("wind_force", ("fx", "fy"), None)) if e != "flow_lever_arm" or lever_arm_observable(data)],
         linear=("b", "fx", "fy", "c"), search=state.search, state=state.as_dict, searched_effect="wind_force",
-        null_pvalue=state.null_pvalue, active_rows=state.active_rows)
+        null_pvalue=state.null_pvalue, active_rows=state.active_rows, instrument=instrument)
     stream = ROTATION_SOURCES[chosen]
     if stream is not None:
         bound = STAMP_ALIGN_SIGMAS * timing_sigma_s(data, "flow", stream)

@@ -164,6 +164,12 @@ class Group:
     #: white noise's, and ``diagnosis`` judges it against the flight's typical window as well
     #: (``locate.typical_window_rms``); none when empty
     coloured: tuple[bool, ...] = ()
+    #: optional instruments: ``instrument(p)`` returns, per channel, residuals of the same rows
+    #: whose derivative in p is the channel's instrument (None for a channel fitted by plain least
+    #: squares): a regressor that carries noise of its own (a rotation from a noisy source) is
+    #: fitted by the instrumental-variable normal equations Z'J d = -Z'r, which that noise does not
+    #: attenuate as it does J'J, as long as the instrument's noise is independent of both
+    instrument: Callable[[np.ndarray], list[np.ndarray | None]] | None = None
 
     def index(self, names: Sequence[str]) -> list[int]:
         return [self.params.index(n) for n in names]
@@ -314,6 +320,25 @@ def _remember(memo: dict[_Key, list[np.ndarray]], key: _Key, value: list[np.ndar
 #: many values at once (32 MB)
 STATS_BATCH_VALUES = 4_000_000
 
+#: a linearisation's statistics per (fold, channel): J'J, J'r, r'r, and the training side's Z'J, Z'r
+_Stats = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _block_products(A: np.ndarray, B: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    """Each block's A'B (rows sorted by block, blocks starting at ``starts``): the rows' outer
+    products summed per block, a batch of blocks at a time (at most STATS_BATCH_VALUES values of
+    outer products at once)."""
+    P, Q = A.shape[1], B.shape[1]
+    out = np.empty((len(starts), P, Q))
+    limit = max(1, STATS_BATCH_VALUES // (P * Q))
+    i = 0
+    while i < len(starts):
+        j = max(i + 1, int(np.searchsorted(stops, starts[i] + limit, side="right")))
+        a, b = int(starts[i]), int(stops[j - 1])
+        out[i:j] = np.add.reduceat(A[a:b, :, None] * B[a:b, None, :], starts[i:j] - a, axis=0)
+        i = j
+    return out
+
 
 class Selector:
     """Fit and choose among a group's candidate effects (see the module docstring)."""
@@ -355,6 +380,8 @@ class Selector:
         self.r_nominal = self.residuals(group.nominal)
         self.sigma = self._noise(self.r_nominal)
         self.widx: list[int] = []
+        self.Z: list[np.ndarray | None] | None = None
+        self.Gzz = np.zeros((self.P, self.P))  # Z'Z over all rows (``_stats``)
         if group.searched_effect is not None:
             cand = next(c for c in group.candidates if c.effect == group.searched_effect)
             self.widx = group.index(cand.params)
@@ -381,21 +408,25 @@ class Selector:
         base[self.widx] = self.g.nominal[self.widx]
         self._linearise(base)
         self.state_full = self.g.state() if (self.widx and self.g.state) else {}
-        self.variants: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.variants: list[_Stats] = []
         if self.widx:
             J_full = [j.copy() for j in self.J]
-            G0, gv0, ss0 = self.G, self.gv, self.ss
-            Gb0, gvb0 = self.Gb.copy(), self.gvb.copy()
+            Z_full = None if self.Z is None else [None if z is None else z.copy() for z in self.Z]
+            Gb0, gvb0, Gzz0 = self.Gb.copy(), self.gvb.copy(), self.Gzz.copy()
             # only channels the searched effect acts on change between variants
             moving = [c for c in range(len(self.J)) if np.any(self.J[c][:, self.widx])]
             for k in range(self.K):
                 self._search(base, [f != k for f in self.folds])
-                G, gv, ss = G0.copy(), gv0.copy(), ss0.copy()
-                Gm, gvm, ssm = self._stats(moving)
-                G[:, moving], gv[:, moving], ss[:, moving] = Gm[:, moving], gvm[:, moving], ssm[:, moving]
-                self.variants.append((G, gv, ss))
+                full = [x.copy() for x in self.stats]
+                if self.Z is None:  # Z'J and Z'r are J'J and J'r
+                    full[3], full[4] = full[0], full[1]
+                part = self._stats(moving)
+                for i in range(5 if self.Z is not None else 3):
+                    full[i][:, moving] = part[i][:, moving]
+                self.variants.append((full[0], full[1], full[2], full[3], full[4]))
             self.J = J_full
-            self.Gb, self.gvb = Gb0, gvb0
+            self.Z = Z_full
+            self.Gb, self.gvb, self.Gzz = Gb0, gvb0, Gzz0
             self._search(base, None)
         self._linearised_at = p.tobytes()
 
@@ -492,6 +523,24 @@ class Selector:
                 out[c][:, j] = (rp[c] - r0[c]) / h
         return out
 
+    def _instruments(self, p: np.ndarray, cols: Sequence[int]) -> list[np.ndarray | None] | None:
+        """Per channel the instruments (rows, P) at p (``Group.instrument``: its residuals'
+        forward differences, weighted as the residuals are; None for a channel without), or None."""
+        if self.g.instrument is None:
+            return None
+        r0 = self.g.instrument(p)
+        out: list[np.ndarray | None] = [None if x is None else np.zeros((len(x), self.P)) for x in r0]
+        for i in cols:
+            pp = p.copy()
+            pp[i] += self.g.steps[i]
+            rp = self.g.instrument(pp)
+            for c, z in enumerate(out):
+                rpc, r0c = rp[c], r0[c]
+                if z is not None and rpc is not None and r0c is not None:
+                    d = (rpc - r0c) / (self.g.steps[i] * self.sigma[c])
+                    z[:, i] = np.where(np.isfinite(d), d, 0.0)
+        return out
+
     def _search(self, p: np.ndarray, train: list[np.ndarray] | None) -> None:
         """Run the group's search and put its columns into the stored Jacobian."""
         assert self.g.search is not None
@@ -501,6 +550,9 @@ class Selector:
         cols = self.g.search(p, train)
         for c in range(len(self.J)):
             self.J[c][:, self.widx] = cols[c] / self.sigma[c]
+            z = None if self.Z is None else self.Z[c]
+            if z is not None:  # the searched part is its own instrument
+                z[:, self.widx] = self.J[c][:, self.widx]
 
     def _linearise(self, p: np.ndarray) -> None:
         """Jacobian and per (fold, channel) sufficient statistics of the linearisation at p."""
@@ -514,53 +566,58 @@ class Selector:
         self.J = [np.zeros((len(t), self.P)) for t in self.g.row_times]
         for c in range(len(self.J)):
             self.J[c][:, others] = Jo[c]
+        self.Z = self._instruments(p, others)
         if self.widx:
             self._search(p, None)
         self.r_lin = self.weighted(p)
-        self.G, self.gv, self.ss = self._stats()
+        self.stats = self._stats()
+        self.G, self.gv, self.ss = self.stats[:3]
         self.cnt = np.array([[np.count_nonzero(f == k) for f in self.folds] for k in range(self.K)], dtype=float)
 
-    def _stats(self, channels: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per (fold, channel): J'J, J'r, r'r of the linearisation; per time cluster (summed over
-        channels) J'J and J'r for the cluster-robust covariance (``_cov``). One pass: the sums
-        are taken per cross-validation block, then added up into folds and clusters."""
+    def _stats(self, channels: Sequence[int] | None = None) -> _Stats:
+        """Per (fold, channel): J'J, J'r, r'r of the linearisation, and the training side's Z'J
+        and Z'r (the instruments Z, ``Group.instrument``; the same arrays as J'J and J'r when the
+        group has none); per time cluster (summed over channels) Z'J and Z'r for the
+        cluster-robust covariance (``_cov``), and Z'Z over all rows. One pass: the sums are taken
+        per cross-validation block, then added up into folds and clusters."""
         C, K, P = len(self.g.channels), self.K, self.P
         G = np.zeros((K, C, P, P))
         gv = np.zeros((K, C, P))
         ss = np.zeros((K, C))
+        iv = self.Z is not None
+        Gz, gz = (np.zeros((K, C, P, P)), np.zeros((K, C, P))) if iv else (G, gv)
         self.Gb = np.zeros((self.n_blocks, P, P))
         self.gvb = np.zeros((self.n_blocks, P))
+        self.Gzz = np.zeros((P, P))
         for c in range(C) if channels is None else channels:
             J, r, blk = self.J[c], self.r_lin[c], self.cvblocks[c]
             if len(r) == 0:
                 continue
+            zc = None if self.Z is None else self.Z[c]
+            Zc = J if zc is None else zc
             order = np.argsort(blk, kind="stable")
             bs = blk[order]
             starts = np.concatenate([[0], np.flatnonzero(np.diff(bs)) + 1])
             stops = np.concatenate([starts[1:], [len(bs)]])
-            Jo, ro = J[order], r[order]
+            Jo, ro, Zo = J[order], r[order], Zc[order]
             gsum = np.add.reduceat(Jo * ro[:, None], starts, axis=0)
+            zsum = gsum if Zc is J else np.add.reduceat(Zo * ro[:, None], starts, axis=0)
             rsum = np.add.reduceat(ro * ro, starts)
-            # each block's J'J: the rows' outer products summed per block, a batch of blocks at a
-            # time (at most STATS_BATCH_VALUES values of outer products at once)
-            Gblk = np.empty((len(starts), P, P))
-            limit = max(1, STATS_BATCH_VALUES // (P * P))
-            i = 0
-            while i < len(starts):
-                j = max(i + 1, int(np.searchsorted(stops, starts[i] + limit, side="right")))
-                a, b = int(starts[i]), int(stops[j - 1])
-                rows = Jo[a:b]
-                Gblk[i:j] = np.add.reduceat(rows[:, :, None] * rows[:, None, :], starts[i:j] - a, axis=0)
-                i = j
+            Gblk = _block_products(Jo, Jo, starts, stops)
+            Zblk = Gblk if Zc is J else _block_products(Zo, Jo, starts, stops)
+            self.Gzz += Zc.T @ Zc
             ids = bs[starts]
             fold = ids % K
             np.add.at(G[:, c], fold, Gblk)
             np.add.at(gv[:, c], fold, gsum)
             np.add.at(ss[:, c], fold, rsum)
+            if iv:
+                np.add.at(Gz[:, c], fold, Zblk)
+                np.add.at(gz[:, c], fold, zsum)
             cl = ids // self.per_cluster
-            np.add.at(self.Gb, cl, Gblk)
-            np.add.at(self.gvb, cl, gsum)
-        return G, gv, ss
+            np.add.at(self.Gb, cl, Zblk)
+            np.add.at(self.gvb, cl, zsum)
+        return G, gv, ss, Gz, gz
 
     def _gauss_newton(self, p: np.ndarray, free: Sequence[int], train: list[np.ndarray] | None, *,
                       iterations: int) -> np.ndarray:
@@ -573,16 +630,18 @@ class Selector:
         p = p.copy()
         lo, hi = self.g.lower[free], self.g.upper[free]
         A = np.zeros((len(free), len(free)))
+        Zs = [J if z is None else z for J, z in zip(self.J, self.Z or [None] * len(self.J), strict=True)]
         for c in range(len(self.J)):
             Jc = self.J[c][:, free]
-            Jm = Jc if train is None else Jc * train[c][:, None]
-            A += Jm.T @ Jc
+            Zc = Zs[c][:, free]
+            Zm = Zc if train is None else Zc * train[c][:, None]
+            A += Zm.T @ Jc
         for _ in range(iterations):
             r = self.weighted(p)
             b = np.zeros(len(free))
             for c in range(len(r)):
                 rc = r[c] if train is None else np.where(train[c], r[c], 0.0)
-                b += rc @ self.J[c][:, free]
+                b += rc @ Zs[c][:, free]
             new = np.clip(p[free] - _solve(A, b), lo, hi)
             done = np.all(np.abs(new - p[free]) < 1e-3 * self.g.steps[free])
             p[free] = new
@@ -603,13 +662,13 @@ class Selector:
         of a lossy hour's linearised selection)."""
         key = (variant, k)
         if key not in self._sums:
-            G_all, gv_all, ss_all = (self.G, self.gv, self.ss) if variant is None else self.variants[variant]
+            G_all, gv_all, ss_all, Gz_all, gz_all = self.stats if variant is None else self.variants[variant]
             train = np.ones(self.K, dtype=bool)
             ks = np.arange(self.K)
             if k is not None:
                 train[k] = False
                 ks = np.array([k])
-            self._sums[key] = ((G_all[train].sum(axis=(0, 1)), gv_all[train].sum(axis=(0, 1))),
+            self._sums[key] = ((Gz_all[train].sum(axis=(0, 1)), gz_all[train].sum(axis=(0, 1))),
                                (G_all[ks].sum(axis=0), gv_all[ks].sum(axis=0), ss_all[ks].sum(axis=0)))
         return self._sums[key]
 
@@ -705,14 +764,15 @@ class Selector:
         S = block_meat(sb)
         B = max(len(sb), 1)
         Hi = np.linalg.pinv(H)
-        cr = Hi @ S @ Hi * B / max(B - len(free), 1)
+        cr = Hi @ S @ Hi.T * B / max(B - len(free), 1)
+        own = Hi if self.Z is None else Hi @ self.Gzz[ff] @ Hi.T  # the model's own covariance
         dev = p_folds[:, free] - p_folds[:, free].mean(axis=0)
         jk = (K - 1) / K * dev.T @ dev
         dc, dj = np.diag(cr), np.diag(jk)
         var = np.maximum(dc, dj)
-        corr, singular = _correlation(cr, Hi)
+        corr, singular = _correlation(cr, own)
         if singular:  # a sandwich over the one or two blocks a short effect acts in (one: zero)
-            var = np.maximum(var, np.clip(np.diag(Hi), 0.0, None))
+            var = np.maximum(var, np.clip(np.diag(own), 0.0, None))
         sd = np.sqrt(var)
         sub = corr * np.outer(sd, sd)
         sub += self._timing_cov(free, Hi, H_all)
