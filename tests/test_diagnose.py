@@ -665,11 +665,14 @@ def test_selector_names_an_effect_only_when_it_earns_it():
     assert chosen0 == [] and not ev0["slope"].significant
 
 
+@pytest.mark.parametrize("instrumented", [False, True])
 @pytest.mark.parametrize("batch_values", [50, 10**9])
-def test_the_selection_statistics_are_the_sums_per_block(monkeypatch, batch_values):
-    """``Selector._stats``: per (fold, channel) J'J, J'r, r'r and per time cluster J'J, J'r are the
-    plain sums over each cross-validation block's rows (folds = block mod K, clusters = block //
-    per_cluster), whatever batch of blocks the outer products are formed in."""
+def test_the_selection_statistics_are_the_sums_per_block(monkeypatch, batch_values, instrumented):
+    """``Selector._stats``: per (fold, channel) J'J, J'r, r'r and the training side's Z'J, Z'r, per
+    time cluster Z'J and Z'r, and Z'Z over all rows are the plain sums over each cross-validation
+    block's rows (folds = block mod K, clusters = block // per_cluster), whatever batch of blocks
+    the outer products are formed in. Without instruments (or on a channel without) Z is J; with
+    ``Group.instrument`` on the first channel, Z there is its residuals' derivative."""
     from companion.diagnose.closed_loop import select as sel_mod
 
     monkeypatch.setattr(sel_mod, "STATS_BATCH_VALUES", batch_values)
@@ -683,25 +686,36 @@ def test_the_selection_statistics_are_the_sums_per_block(monkeypatch, batch_valu
               residuals=lambda p: [x1 - p[0] * np.sin(t1) - p[1] * t1 / 300,
                                    x2 - p[2] * np.cos(t2) - p[1] * x2 ** 2],
               row_times=[t1, t2], candidates=[Candidate("ab", ("a", "b")), Candidate("c", ("c",))],
-              linear=("a", "b", "c"))
+              linear=("a", "b", "c"),
+              instrument=(lambda p: [x1 - p[0] * np.sin(t1 + 0.1) - p[1] * (t1 / 300) ** 2, None])
+              if instrumented else None)
     s = Selector(g, Settings(), 0.0)
-    G, gv, ss = s._stats()
+    G, gv, ss, Gz, gz = s._stats()
     K, P = s.K, s.P
     G_ref, gv_ref, ss_ref = np.zeros((K, 2, P, P)), np.zeros((K, 2, P)), np.zeros((K, 2))
-    Gb_ref, gvb_ref = np.zeros((s.n_blocks, P, P)), np.zeros((s.n_blocks, P))
+    Gz_ref, gz_ref = np.zeros((K, 2, P, P)), np.zeros((K, 2, P))
+    Gb_ref, gvb_ref, Gzz_ref = np.zeros((s.n_blocks, P, P)), np.zeros((s.n_blocks, P)), np.zeros((P, P))
     for c in range(2):
         J, r, blk = s.J[c], s.r_lin[c], s.cvblocks[c]
+        Z = J if s.Z is None or s.Z[c] is None else s.Z[c]
+        assert (Z is not J) == (instrumented and c == 0)
+        Gzz_ref += Z.T @ Z
         for b in np.unique(blk):
             m = blk == b
             k, cl = b % K, b // s.per_cluster
             G_ref[k, c] += J[m].T @ J[m]
             gv_ref[k, c] += J[m].T @ r[m]
             ss_ref[k, c] += r[m] @ r[m]
-            Gb_ref[cl] += J[m].T @ J[m]
-            gvb_ref[cl] += J[m].T @ r[m]
-    for got, want in ((G, G_ref), (gv, gv_ref), (ss, ss_ref), (s.Gb, Gb_ref), (s.gvb, gvb_ref)):
+            Gz_ref[k, c] += Z[m].T @ J[m]
+            gz_ref[k, c] += Z[m].T @ r[m]
+            Gb_ref[cl] += Z[m].T @ J[m]
+            gvb_ref[cl] += Z[m].T @ r[m]
+    for got, want in ((G, G_ref), (gv, gv_ref), (ss, ss_ref), (Gz, Gz_ref), (gz, gz_ref), (s.Gb, Gb_ref),
+                      (s.gvb, gvb_ref), (s.Gzz, Gzz_ref)):
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
     assert len(np.unique(s.cvblocks[0])) > 10 and np.abs(G_ref).max() > 0
+    if instrumented:
+        assert np.abs(Gz_ref[:, 0] - G_ref[:, 0]).max() > 1e-3 * np.abs(G_ref[:, 0]).max()
 
 
 # ---------------------------------------------------------------------------------------------
