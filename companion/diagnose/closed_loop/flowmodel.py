@@ -259,8 +259,8 @@ class FlowProblem:
         dphi = (data.dphi_x_rad, data.dphi_y_rad)
         flow_w: list[np.ndarray] = []
         force_w: list[np.ndarray] = []
-        have_acc = accelerometer and data.accel_x_m_s2 is not None and data.accel_y_m_s2 is not None
-        v_acc = np.zeros((2, n)) if have_acc else None
+        acc_xy = (data.accel_x_m_s2, data.accel_y_m_s2)
+        v_acc = np.zeros((2, n)) if accelerometer and acc_xy[0] is not None and acc_xy[1] is not None else None
         for a, b in data.segments():
             ts = t[a:b]
             for i in (0, 1):
@@ -274,11 +274,13 @@ class FlowProblem:
                 # carries the body rate times rz / A, i.e. integral(dR / A)
                 inc_r = np.diff(self.R[i, a:b]) / (0.5 * (self.A[a + 1:b] + self.A[a:b - 1]))
                 self.RA[i, a:b] = np.concatenate([[0.0], np.cumsum(inc_r)])
-            if v_acc is not None and data.accel_x_m_s2 is not None and data.accel_y_m_s2 is not None:
+            if v_acc is not None:
                 # the body axes' specific force, levelled: what pushes the vehicle besides its tilt
                 # (its bias taken out below, once the flow's odometry is at hand)
-                for i, (acc_b, tilt) in enumerate(((data.accel_x_m_s2, ang[0]), (data.accel_y_m_s2, ang[1]))):
-                    v_acc[i, a:b] = _cumtrapz(np.nan_to_num(acc_b[a:b]) / np.cos(tilt[a:b]), ts)
+                for i in (0, 1):
+                    acc_b = acc_xy[i]
+                    assert acc_b is not None
+                    v_acc[i, a:b] = _cumtrapz(np.nan_to_num(acc_b[a:b]) / np.cos(ang[i][a:b]), ts)
             sp = CubicSpline(ts, self.R[:, a:b].T, axis=0)
             self._splines.append((a, b, sp))
             self.Rdot[:, a:b] = sp(ts, 1).T

@@ -571,7 +571,6 @@ class Selector:
             self._search(p, None)
         self.r_lin = self.weighted(p)
         self.stats = self._stats()
-        self.G, self.gv, self.ss = self.stats[:3]
         self.cnt = np.array([[np.count_nonzero(f == k) for f in self.folds] for k in range(self.K)], dtype=float)
 
     def _stats(self, channels: Sequence[int] | None = None) -> _Stats:
