@@ -1082,10 +1082,17 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
     keep = ~quiet_windows(base, data.flow_resolution_rad * math.sqrt(12.0))
     if not keep.all():
         base.keep_flow_windows(keep)
-    fp = FlowProblem(data, rotation_angles=regressor, scene_angle=regressor_scene_angle(base, regressor, p_a), **kw)
-    if not keep.all():
-        fp.keep_flow_windows(keep)
-    fp.anchor(base, p_a)
+
+    def anchored(rotation: tuple[np.ndarray, np.ndarray]) -> FlowProblem:
+        """The flow problem whose regressors take their rotation from ``rotation``, on the kept
+        windows, anchored to ``base``'s nominal residual."""
+        prob = FlowProblem(data, rotation_angles=rotation, scene_angle=regressor_scene_angle(base, rotation, p_a), **kw)
+        if not keep.all():
+            prob.keep_flow_windows(keep)
+        prob.anchor(base, p_a)
+        return prob
+
+    fp = anchored(regressor)
     data.notes.append(f"the flow effects' regressors: rotation from {what}, velocity from the tilt above "
                       f"{VELOCITY_CROSSOVER_HZ:g} Hz and the flow below (their noise is not the residual's)")
     if len(keep) and not keep.all():
@@ -1114,11 +1121,7 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
         # rotation is the gyro's: they share its noise (errors in variables: a hover read as a
         # rotation gain of 0.5 and a flow delay of 26 ms). The same regressors built from the
         # attitude, whose noise is its own, are the flow channels' instruments (Group.instrument)
-        att = (data.pitch_rad, data.roll_rad)
-        fi = FlowProblem(data, rotation_angles=att, scene_angle=regressor_scene_angle(base, att, p_a), **kw)
-        if not keep.all():
-            fi.keep_flow_windows(keep)
-        fi.anchor(base, p_a)
+        fi = anchored((data.pitch_rad, data.roll_rad))
 
         def instrument(p: np.ndarray) -> list[np.ndarray | None]:
             f = fi.flow_residual(p)
