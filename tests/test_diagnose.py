@@ -645,6 +645,21 @@ def test_stlsq_recovers_a_sparse_law():
     assert fit.r2_heldout > 0.95
 
 
+def test_a_sparse_fit_with_nothing_held_out_predicts_nothing_held_out():
+    """Rows all in one fold (a flow channel left with one window after the quiet ones) leave no
+    fold to hold out: the held-out share is nil, not the 100 % the empty sum gave, and the term is
+    not listed as structure. Rows in two folds are held out as before: each fold's prediction from
+    the other's fit, the same law, predicts most of it."""
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=40)
+    y = 0.5 * x + rng.normal(0, 0.05, 40)
+    terms = [Term("x", "a term", "1", x)]
+    one = sparse_fit(y, terms, np.full(40, 2), 8)
+    assert (one.r2_heldout, one.best_r2_heldout) == (0.0, 0.0)
+    two = sparse_fit(y, terms, np.arange(40) % 2, 8)
+    assert two.best is not None and 0.9 < two.best_r2_heldout < 1.0
+
+
 def _line_group(y: np.ndarray, x: np.ndarray, t: np.ndarray) -> Group:
     return Group(name="line", params=("a",), nominal=np.zeros(1), steps=np.array([1e-3]),
                  lower=np.array([-10.0]), upper=np.array([10.0]), channels=("y",), units=("1",), floors=(1e-9,),

@@ -560,3 +560,27 @@ def test_the_matrix_measures_its_stated_uncertainty_against_the_truth() -> None:
     assert [round(p, 9) for p, _n in pu["linear_drag.b"]] == [0.5, -1.5, 3.0, 0.2]
     row = next(x for x in gm.uncertainty_section(results) if x.startswith("| linear_drag.b"))
     assert row == "| linear_drag.b | 4 | 50 % | 75 % | 1.00 | 3 (c) |"
+
+
+def test_the_matrix_counts_unexplained_entries_on_clean_recordings() -> None:
+    """Issue 12 asks that nothing the recording's own noise explains be listed as unexplained: on a
+    clean recording (no true effect) every unexplained entry is that, and the matrix counts and
+    lists them; entries on recordings with true effects, and errors, are not counted."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import generalisation_matrix as gm
+
+    def rec(name: str, truth: dict[str, object], n_unexplained: int, status: str = "ok") -> dict[str, object]:
+        ents = [{"channel": "force_x", "start_s": 1.0, "end_s": 9.0, "rms": 0.1,
+                 "best_term": "+20 N per rad of tilt (a thrust or tilt-estimate scale error)"}] * n_unexplained
+        return {"name": name, "status": status, "truth_effects": truth, "duration_s": 30.0, "noise": {},
+                "gen_s": 1.0, "diag_s": 1.0,
+                "n_unexplained": n_unexplained, "unexplained": ents,
+                "score": {"clean": not truth, "right": True, "hits": [], "misses": [], "false": []}}
+
+    results = [rec("a", {}, 0), rec("b", {}, 2), rec("c", {"linear_drag": {"b": 0.3}}, 1), rec("d", {}, 1)]
+    results[3]["n_unexplained"] = 0  # an entry list the count does not match is read by its count
+    t = gm.totals(results)
+    assert (t["clean"], t["clean_unexplained"]) == (3, 1)
+    rows = [x for x in gm.clean_unexplained_section(results) if x.startswith("| b ")]
+    assert rows == ["| b | 30 | - | force_x: +20 N per rad of tilt; force_x: +20 N per rad of tilt |"]
+    assert gm.clean_unexplained_section(results[:1])[-2] == "None."

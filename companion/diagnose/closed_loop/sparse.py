@@ -101,14 +101,16 @@ def sparse_fit(y: np.ndarray, terms: list[Term], folds: np.ndarray, K: int) -> S
     ssk = np.array([float(yy[f == k] @ yy[f == k]) for k in range(K)])
     nk = np.array([np.count_nonzero(f == k) for k in range(K)])
     G, b, n = Gk.sum(axis=0), bk.sum(axis=0), int(nk.sum())
-    total = float(ssk.sum())
+    # the folds that can be held out (rows in them and in the others); the held-out share is of
+    # their rows only: a channel whose rows all sit in one fold (one flow window left after the
+    # quiet ones) has nothing held out, not a term that "predicts 100 % of the held-out residual"
+    held = [k for k in range(K) if 0 < nk[k] < n]
+    total = float(ssk[held].sum())
 
     def cv(threshold: float, which: np.ndarray | None = None) -> float:
         sel = np.arange(len(cols)) if which is None else which
         sse = 0.0
-        for k in range(K):
-            if nk[k] == 0 or nk[k] == n:
-                continue
+        for k in held:
             Gt = (G - Gk[k])[np.ix_(sel, sel)]
             c = stlsq_gram(Gt, (b - bk[k])[sel], n - int(nk[k]), threshold)
             sse += ssk[k] - 2 * float(c @ bk[k][sel]) + float(c @ Gk[k][np.ix_(sel, sel)] @ c)
@@ -124,7 +126,7 @@ def sparse_fit(y: np.ndarray, terms: list[Term], folds: np.ndarray, K: int) -> S
     best_coef = 0.0
     best_r2 = 0.0
     for j in np.flatnonzero(c):
-        r2j = 1.0 - cv(0.0, np.array([j])) / total
+        r2j = 1.0 - cv(0.0, np.array([j])) / total if total > 0 else 0.0
         if best is None or r2j > best_r2:
             best, best_coef, best_r2 = cols[j], float(b[j] / G[j, j] * ys / scale[j]), r2j
     return SparseFit(cols, coef, float(r2), th, best, best_coef, float(best_r2))
