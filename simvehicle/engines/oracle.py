@@ -197,9 +197,7 @@ def fit_free(sel: Selector, p0: np.ndarray, free: list[int], iterations: int = 1
     g = sel.g
     lo, hi = g.lower[free], g.upper[free]
 
-    def sse_of(q: np.ndarray) -> float:
-        return float(sum(float(x @ x) for x in sel.weighted(q)))
-
+    sse_of = sel.weighted_sse
     sse = sse_of(p)
     lam = 1e-3
     for _ in range(iterations):

@@ -508,6 +508,10 @@ class Selector:
         _remember(self._memo_weighted, key, w)
         return w
 
+    def weighted_sse(self, p: np.ndarray) -> float:
+        """The sum of squares of ``weighted(p)`` over every channel."""
+        return float(sum(float(r @ r) for r in self.weighted(p)))
+
     def jacobian(self, p: np.ndarray, cols: Sequence[int]) -> list[np.ndarray]:
         """Weighted Jacobian per channel (rows, len(cols)) by forward differences with the group's
         steps (exact for the parameters the residuals are linear in; it only steers the fits,
@@ -1249,8 +1253,7 @@ class Selector:
         if searched:
             self._search(p, None)
             p = self._gauss_newton(p, free, None, iterations=it)
-        r_full = self.weighted(p)
-        full_sse = float(sum(float(r @ r) for r in r_full))
+        full_sse = self.weighted_sse(p)
         jac = None
         if self.Z is None and free and not searched and not self._describes(p, free):
             p, full_sse, jac = self._refit_off_linearisation(p, full_sse, p0, free)
@@ -1316,16 +1319,16 @@ class Selector:
         q[free] = self.g.nominal[free]
         best_sse, best = sse, p
         for st in (p0, q):
-            s0 = float(sum(float(r @ r) for r in self.weighted(st)))
+            s0 = self.weighted_sse(st)
             if s0 < best_sse * (1.0 - 1e-9):
                 best_sse, best = s0, st
         if best is not p:
             p = self._levenberg(best.copy(), free)
-        sse = float(sum(float(r @ r) for r in self.weighted(p)))
+        sse = self.weighted_sse(p)
         jac = self.jacobian(p, free)
         for _ in range(2):  # Gauss-Newton steps with the Jacobian at the fit, kept while they lower the SSE
             q = self._gauss_newton(p, free, None, iterations=1, jac=jac)
-            sq = float(sum(float(r @ r) for r in self.weighted(q)))
+            sq = self.weighted_sse(q)
             if not sq < sse:
                 break
             p, sse = q, sq
