@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -257,10 +257,10 @@ def _force_terms(data: FlightData, fp: FlowProblem, res: GroupResult, i: int,
     does not reach): the force residual holds the recorded tilt's noise (g tan(tilt), integrated),
     and regressed on that same recorded tilt the noise read as a tilt scale error (it cleared 2 of
     the 18 clean flights of the generalisation matrix that listed an unexplained entry; on
-    ``--seed 1`` 2 of 22, and one other came up). What
-    the loop's attitude does not remove is the turbulence: the commands follow the velocity the
-    turbulence moves, so the loop tilts against it and the tilt still predicts its force
-    (docs/diagnose.md, section 8)."""
+    ``--seed 1`` 2 of 22, and one other came up). What the loop's attitude does not remove is
+    the turbulence: the commands follow the velocity the turbulence moves, so the loop tilts
+    against it and the tilt still predicts its force; the loop's terms are therefore their
+    setpoint-driven part (``_setpoint_driven``; docs/diagnose.md, section 8)."""
     t = data.t_s
     X, _ = fp.flow_velocity(res.final.p)
     k0, k1 = fp.force.idx[:, 0], fp.force.idx[:, 1]
@@ -293,7 +293,52 @@ def _force_terms(data: FlightData, fp: FlowProblem, res: GroupResult, i: int,
            ("height", "ground effect", "m", data.range_m),
            ("climb rate", "thrust changes while climbing", "m/s", climb),
            ("other-axis velocity", "coupling between the axes", "m/s", v[o])]
-    return [Term(n, w, u, wmean(y)) for n, w, u, y in raw]
+    return _setpoint_driven([Term(n, w, u, wmean(y)) for n, w, u, y in raw], _setpoint_instruments(data, wmean))
+
+
+#: the force terms the horizontal loop answers a disturbance with (its velocity and tilt), and so
+#: correlated with the disturbance's force whatever the physics; the height, the climb rate and the
+#: constant are the vertical loop's or nobody's, and stay as they are
+LOOP_ANSWERED = ("velocity", "velocity |velocity|", "sign(velocity)", "tilt", "other-axis velocity")
+
+
+#: the setpoint lags (s) whose window means are the force terms' instruments (``_setpoint_instruments``)
+SETPOINT_LAGS_S = (0.0, 0.5, 1.0, 2.0)
+
+
+def _setpoint_driven(terms: list[Term], Z: np.ndarray | None) -> list[Term]:
+    """``terms`` with each of the horizontal loop's (``LOOP_ANSWERED``) replaced by its part the
+    instruments ``Z`` (``_setpoint_instruments``, per row) predict: the first stage of two-stage
+    least squares. A disturbance moves the velocity and the loop tilts against it, so those terms
+    regressed on the force residual (the disturbance itself) read the turbulence as a drag or a
+    tilt scale; their setpoint-driven part is uncorrelated with it, and a real law (a drag on the
+    velocity the setpoints ask for) is still read, without the loop's attenuation. Without
+    instruments (None) the terms are as they are."""
+    if Z is None:
+        return terms
+    Zp = np.linalg.pinv(Z)
+    return [replace(t, values=Z @ (Zp @ t.values))
+            if t.name in LOOP_ANSWERED and np.all(np.isfinite(t.values)) else t for t in terms]
+
+
+def _setpoint_instruments(data: FlightData, wmean: Callable[[np.ndarray], np.ndarray]) -> np.ndarray | None:
+    """Per force window, the window means of both axes' velocity setpoints at ``SETPOINT_LAGS_S``
+    and a constant: what drives the flight that no disturbance reaches (the reference signal of
+    closed-loop identification), or None where the recording has no setpoint or too few windows."""
+    sx, sy = data.vx_set_m_s, data.vy_set_m_s
+    if not (np.any(np.isfinite(sx)) and np.any(np.isfinite(sy))):
+        return None
+    t = data.t_s
+    cols = []
+    for sp in (sx, sy):
+        ok = np.isfinite(sp)
+        base = np.interp(t, t[ok], sp[ok])
+        for lag in SETPOINT_LAGS_S:
+            cols.append(wmean(np.interp(t - lag, t, base)))
+    Z = np.column_stack([np.ones_like(cols[0]), *cols])
+    if len(Z) < 4 * Z.shape[1] or not np.all(np.isfinite(Z)) or np.ptp(Z[:, 1:], axis=0).max() <= 1e-9:
+        return None  # too few windows, or setpoints that never change (a hold: nothing to tell the loop by)
+    return Z
 
 
 def _fit_group(g: Group, settings: Settings, t0: float) -> GroupResult:
