@@ -28,6 +28,7 @@ from companion.diagnose.closed_loop.channels import FlightData
 from companion.diagnose.closed_loop.diagnosis import (
     SETPOINT_LAGS_S,
     SPARSE_MIN_R2,
+    WINDOWS_PER_INSTRUMENT,
     _setpoint_driven,
     _setpoint_instruments,
 )
@@ -716,9 +717,12 @@ def test_the_loops_terms_read_the_setpoints_not_the_turbulence(seed):
     assert abs(sparse_fit(y, terms[:1], folds, 8).best_coef + 0.4) > abs(fit.best_coef + 0.4)
 
 
-def test_setpoints_that_never_change_are_no_instruments():
-    """A hold (one setpoint throughout) or a recording without setpoints gives nothing to tell the
-    loop's answer from the disturbance by: no instruments, and the terms stay as they are."""
+def test_a_hold_leaves_the_loops_terms_nothing_to_say():
+    """A hold (one setpoint throughout: a hover, or a recording that starts after the last step)
+    drives nothing the loop's velocity and tilt could follow: all they do there is answer the
+    disturbances, and their setpoint-driven part is a constant. The instruments are the constant
+    alone, and the loop's terms are dropped (the constant term says what they could); the others
+    (height, climb rate) stay. A recording without setpoints has no instruments at all."""
     t = np.arange(0.0, 100.0, 0.02)
     k0 = np.arange(0, len(t) - 50, 50)
 
@@ -726,14 +730,44 @@ def test_setpoints_that_never_change_are_no_instruments():
         return y[k0]
 
     hold = argparse.Namespace(t_s=t, vx_set_m_s=np.full(len(t), 0.5), vy_set_m_s=np.zeros(len(t)))
-    assert _setpoint_instruments(hold, wmean) is None
+    Z = _setpoint_instruments(hold, wmean)
+    assert Z is not None and Z.shape == (len(k0), 1) and np.all(Z == 1.0)
+    terms = [Term("velocity", "drag", "m/s", 0.5 + 0.1 * np.sin(t[k0])),
+             Term("tilt", "scale", "rad", 0.02 * np.cos(t[k0])),
+             Term("height", "ground effect", "m", 1.0 + 0.2 * np.sin(0.1 * t[k0]))]
+    assert [x.name for x in _setpoint_driven(terms, Z)] == ["height"]
     none = argparse.Namespace(t_s=t, vx_set_m_s=np.full(len(t), np.nan), vy_set_m_s=np.full(len(t), np.nan))
     assert _setpoint_instruments(none, wmean) is None
-    terms = [Term("velocity", "drag", "m/s", np.sin(t[k0]))]
     assert _setpoint_driven(terms, None) is terms
     step = argparse.Namespace(t_s=t, vx_set_m_s=(t > 50).astype(float), vy_set_m_s=np.zeros(len(t)))
     Z = _setpoint_instruments(step, wmean)
     assert Z is not None and Z.shape == (len(k0), 1 + 2 * len(SETPOINT_LAGS_S))
+
+
+@pytest.mark.parametrize(("n_windows", "n_lags"), [(11, None), (12, 1), (19, 1), (20, 2), (25, 2), (28, 3),
+                                                    (35, 3), (36, 4), (200, 4)])
+def test_a_short_flight_takes_the_lags_its_windows_carry(n_windows, n_lags):
+    """The first stage has at least ``WINDOWS_PER_INSTRUMENT`` windows per column (both axes'
+    setpoints at each lag, and the constant), as many lags as that allows, in
+    ``SETPOINT_LAGS_S``'s order: a 28 s flight (25 one-second windows) had no instruments at all
+    with all four lags, and its loop's answer to 0.14-0.38 N of turbulence was listed as a tilt
+    scale or a drag on three clean flights of the generalisation matrix. Too few windows for one
+    lag: none."""
+    t = np.arange(0.0, n_windows + 1.0, 0.02)
+    k0 = np.arange(0, n_windows) * 50
+
+    def wmean(y: np.ndarray) -> np.ndarray:
+        return y[k0]
+
+    data = argparse.Namespace(t_s=t, vx_set_m_s=np.sin(0.5 * t), vy_set_m_s=(t > n_windows / 2).astype(float))
+    Z = _setpoint_instruments(data, wmean)
+    if n_lags is None:
+        assert Z is None
+        return
+    assert Z is not None and Z.shape == (n_windows, 1 + 2 * n_lags)
+    assert Z.shape[0] >= WINDOWS_PER_INSTRUMENT * Z.shape[1]
+    x = np.interp(t[k0] - SETPOINT_LAGS_S[n_lags - 1], t, np.sin(0.5 * t))  # the last lag taken, axis x
+    assert np.allclose(Z[:, n_lags], x)
 
 
 def _line_group(y: np.ndarray, x: np.ndarray, t: np.ndarray) -> Group:

@@ -302,8 +302,11 @@ def _force_terms(data: FlightData, fp: FlowProblem, res: GroupResult, i: int,
 LOOP_ANSWERED = ("velocity", "velocity |velocity|", "sign(velocity)", "tilt", "other-axis velocity")
 
 
-#: the setpoint lags (s) whose window means are the force terms' instruments (``_setpoint_instruments``)
-SETPOINT_LAGS_S = (0.0, 0.5, 1.0, 2.0)
+#: the setpoint lags (s) whose window means are the force terms' instruments
+#: (``_setpoint_instruments``), in the order they are taken when the windows carry only some
+SETPOINT_LAGS_S = (0.0, 1.0, 0.5, 2.0)
+#: force windows per instrument column at least (both axes' setpoints at each lag, and a constant)
+WINDOWS_PER_INSTRUMENT = 4
 
 
 def _setpoint_driven(terms: list[Term], Z: np.ndarray | None) -> list[Term]:
@@ -317,27 +320,43 @@ def _setpoint_driven(terms: list[Term], Z: np.ndarray | None) -> list[Term]:
     if Z is None:
         return terms
     Zp = np.linalg.pinv(Z)
-    return [replace(t, values=Z @ (Zp @ t.values))
-            if t.name in LOOP_ANSWERED and np.all(np.isfinite(t.values)) else t for t in terms]
+    out = []
+    for t in terms:
+        if t.name in LOOP_ANSWERED and np.all(np.isfinite(t.values)):
+            t = replace(t, values=Z @ (Zp @ t.values))
+            if np.ptp(t.values) <= 1e-12 * max(1.0, float(np.max(np.abs(t.values)))):
+                continue  # a hold's: a constant, which says nothing the constant term does not
+        out.append(t)
+    return out
 
 
 def _setpoint_instruments(data: FlightData, wmean: Callable[[np.ndarray], np.ndarray]) -> np.ndarray | None:
     """Per force window, the window means of both axes' velocity setpoints at ``SETPOINT_LAGS_S``
-    and a constant: what drives the flight that no disturbance reaches (the reference signal of
-    closed-loop identification), or None where the recording has no setpoint or too few windows."""
+    (as many lags as ``WINDOWS_PER_INSTRUMENT`` allows) and a constant: what drives the flight that
+    no disturbance reaches (the reference signal of closed-loop identification). A hold (setpoints
+    that never change) gives the constant alone: all the loop's velocity and tilt do there is
+    answer disturbances. None where the recording has no setpoint or too few windows."""
     sx, sy = data.vx_set_m_s, data.vy_set_m_s
     if not (np.any(np.isfinite(sx)) and np.any(np.isfinite(sy))):
         return None
     t = data.t_s
+    n_windows = len(wmean(t))
+    # as many lags as the windows carry: a first stage with nearly as many columns as rows
+    # predicts the disturbance too (a 28 s flight has 25 one-second windows)
+    n_lags = min(len(SETPOINT_LAGS_S), (n_windows // WINDOWS_PER_INSTRUMENT - 1) // 2)
+    if n_lags < 1:
+        return None
     cols = []
     for sp in (sx, sy):
         ok = np.isfinite(sp)
         base = np.interp(t, t[ok], sp[ok])
-        for lag in SETPOINT_LAGS_S:
+        for lag in SETPOINT_LAGS_S[:n_lags]:
             cols.append(wmean(np.interp(t - lag, t, base)))
     Z = np.column_stack([np.ones_like(cols[0]), *cols])
-    if len(Z) < 4 * Z.shape[1] or not np.all(np.isfinite(Z)) or np.ptp(Z[:, 1:], axis=0).max() <= 1e-9:
-        return None  # too few windows, or setpoints that never change (a hold: nothing to tell the loop by)
+    if not np.all(np.isfinite(Z)):
+        return None
+    if np.ptp(Z[:, 1:], axis=0).max() <= 1e-9:
+        return Z[:, :1]  # a hold
     return Z
 
 
