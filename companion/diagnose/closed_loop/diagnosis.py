@@ -38,6 +38,7 @@ from companion.diagnose.closed_loop.groups import (
 )
 from companion.diagnose.closed_loop.locate import (
     Interval,
+    coloured_factor,
     conditions,
     effect_windows,
     excess_windows,
@@ -53,6 +54,9 @@ from companion.recordings.load import Recording
 
 #: an unexplained residual this many times its channel's noise means the model does not fit
 MISFIT_TIMES_NOISE = 3.0
+#: a stretch of a fitted channel whose residual stands this many times its noise is listed as
+#: unexplained (``locate.excess_windows``' default)
+STRETCH_TIMES_NOISE = 2.0
 #: effects that can stand in for one another where a flight does not separate them (the flow's
 #: scale and its rotation gain when the translation is weak; a range offset and a scale at one
 #: height; a lever arm and a rotation gain at one height; linear and form drag at one speed; a
@@ -676,10 +680,27 @@ def _stretch_noise(res: GroupResult, c: int) -> float:
     t, r = g.row_times[c], res.r_final[c]
     sigma = max(float(res.selector.sigma[c]), white_noise(t, r))
     if g.coloured and g.coloured[c]:
-        sp = res.sparse.get(g.channels[c])
-        left = r - sp.predict(len(r)) if sp is not None and _structured(sp, r, g.floors[c]) else r
-        sigma = max(sigma, typical_window_rms(t, left))
+        sigma = max(sigma, typical_window_rms(t, _sparse_left(res, c)))
     return sigma
+
+
+def _sparse_left(res: GroupResult, c: int) -> np.ndarray:
+    """Channel c's final residual less what its sparse fit (``res.sparse``) predicts, when that
+    fit explains it (``_structured``); the residual itself otherwise."""
+    g = res.group
+    r = res.r_final[c]
+    sp = res.sparse.get(g.channels[c])
+    return r - sp.predict(len(r)) if sp is not None and _structured(sp, r, g.floors[c]) else r
+
+
+def _stretch_factor(res: GroupResult, c: int) -> float:
+    """How many times its noise (``_stretch_noise``) channel c's window must stand to be listed:
+    ``STRETCH_TIMES_NOISE``, or, for a coloured channel, what its own windows' scatter leaves
+    to chance (``locate.coloured_factor``, on what the sparse fit leaves) where that is higher."""
+    g = res.group
+    if not (g.coloured and g.coloured[c]):
+        return STRETCH_TIMES_NOISE
+    return max(STRETCH_TIMES_NOISE, coloured_factor(g.row_times[c], _sparse_left(res, c)))
 
 
 def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProblem, gp: GyroProblem,
@@ -697,8 +718,9 @@ def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProb
             res.sparse[ch] = sp
         structured = _structured(sp, r, g.floors[c])
         sigma = _stretch_noise(res, c)
-        res.mismatch_windows[ch] = excess_windows(tt, res.r_nominal[c], sigma)
-        windows = excess_windows(tt, r, sigma)
+        factor = _stretch_factor(res, c)
+        res.mismatch_windows[ch] = excess_windows(tt, res.r_nominal[c], sigma, factor=factor)
+        windows = excess_windows(tt, r, sigma, factor=factor)
         res.unexplained_windows[ch] = windows
         rms = float(np.sqrt(np.mean(r ** 2)))
         best_text = sp.describe(g.units[c]) if (sp is not None and structured) else None
