@@ -732,6 +732,9 @@ def test_a_hold_leaves_the_loops_terms_nothing_to_say():
     hold = argparse.Namespace(t_s=t, vx_set_m_s=np.full(len(t), 0.5), vy_set_m_s=np.zeros(len(t)))
     Z = _setpoint_instruments(hold, wmean)
     assert Z is not None and Z.shape == (len(k0), 1) and np.all(Z == 1.0)
+    # the constant alone needs WINDOWS_PER_INSTRUMENT windows, not the lags' (a 10 s hover)
+    assert _setpoint_instruments(hold, lambda y: y[k0[:WINDOWS_PER_INSTRUMENT]]).shape == (WINDOWS_PER_INSTRUMENT, 1)
+    assert _setpoint_instruments(hold, lambda y: y[k0[:WINDOWS_PER_INSTRUMENT - 1]]) is None
     terms = [Term("velocity", "drag", "m/s", 0.5 + 0.1 * np.sin(t[k0])),
              Term("tilt", "scale", "rad", 0.02 * np.cos(t[k0])),
              Term("height", "ground effect", "m", 1.0 + 0.2 * np.sin(0.1 * t[k0]))]

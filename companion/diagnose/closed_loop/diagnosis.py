@@ -319,8 +319,9 @@ def _setpoint_driven(terms: list[Term], Z: np.ndarray | None) -> list[Term]:
     least squares. A disturbance moves the velocity and the loop tilts against it, so those terms
     regressed on the force residual (the disturbance itself) read the turbulence as a drag or a
     tilt scale; their setpoint-driven part is uncorrelated with it, and a real law (a drag on the
-    velocity the setpoints ask for) is still read, without the loop's attenuation. Without
-    instruments (None) the terms are as they are."""
+    velocity the setpoints ask for) is still read, without the loop's attenuation. A hold's
+    (instruments that are the constant alone) are a constant and left out; without instruments
+    (None) the terms are as they are."""
     if Z is None:
         return terms
     Zp = np.linalg.pinv(Z)
@@ -345,23 +346,20 @@ def _setpoint_instruments(data: FlightData, wmean: Callable[[np.ndarray], np.nda
         return None
     t = data.t_s
     n_windows = len(wmean(t))
+    bases = []
+    for sp in (sx, sy):
+        ok = np.isfinite(sp)
+        bases.append(np.interp(t, t[ok], sp[ok]))
+    if max(float(np.ptp(b)) for b in bases) <= 1e-9:  # a hold
+        return np.ones((n_windows, 1)) if n_windows >= WINDOWS_PER_INSTRUMENT else None
     # as many lags as the windows carry: a first stage with nearly as many columns as rows
     # predicts the disturbance too (a 28 s flight has 25 one-second windows)
     n_lags = min(len(SETPOINT_LAGS_S), (n_windows // WINDOWS_PER_INSTRUMENT - 1) // 2)
     if n_lags < 1:
         return None
-    cols = []
-    for sp in (sx, sy):
-        ok = np.isfinite(sp)
-        base = np.interp(t, t[ok], sp[ok])
-        for lag in SETPOINT_LAGS_S[:n_lags]:
-            cols.append(wmean(np.interp(t - lag, t, base)))
-    Z = np.column_stack([np.ones_like(cols[0]), *cols])
-    if not np.all(np.isfinite(Z)):
-        return None
-    if np.ptp(Z[:, 1:], axis=0).max() <= 1e-9:
-        return Z[:, :1]  # a hold
-    return Z
+    cols = [wmean(np.interp(t - lag, t, base)) for base in bases for lag in SETPOINT_LAGS_S[:n_lags]]
+    Z = np.column_stack([np.ones(n_windows), *cols])
+    return Z if np.all(np.isfinite(Z)) else None
 
 
 def _fit_group(g: Group, settings: Settings, t0: float) -> GroupResult:
