@@ -37,6 +37,7 @@ from companion.diagnose.closed_loop.groups import (
     lever_arm_observable,
 )
 from companion.diagnose.closed_loop.locate import (
+    STRETCH_TIMES_NOISE,
     Interval,
     coloured_factor,
     conditions,
@@ -54,9 +55,6 @@ from companion.recordings.load import Recording
 
 #: an unexplained residual this many times its channel's noise means the model does not fit
 MISFIT_TIMES_NOISE = 3.0
-#: a stretch of a fitted channel whose residual stands this many times its noise is listed as
-#: unexplained (``locate.excess_windows``' default)
-STRETCH_TIMES_NOISE = 2.0
 #: effects that can stand in for one another where a flight does not separate them (the flow's
 #: scale and its rotation gain when the translation is weak; a range offset and a scale at one
 #: height; a lever arm and a rotation gain at one height; linear and form drag at one speed; a

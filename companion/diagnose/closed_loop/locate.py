@@ -15,6 +15,8 @@ from statistics import NormalDist
 
 import numpy as np
 
+from companion.diagnose.closed_loop.select import robust_std
+
 
 @dataclass(frozen=True)
 class Interval:
@@ -116,6 +118,9 @@ def typical_window_rms(t_s: np.ndarray, r: np.ndarray, width_s: float = 5.0, ste
     return float(np.median(v)) if len(v) else 0.0
 
 
+#: a window whose residual stands this many times its noise is listed (``excess_windows``)
+STRETCH_TIMES_NOISE = 2.0
+
 #: the chance (per channel and flight) that a coloured noise's highest window stands above
 #: ``coloured_factor``'s threshold (``excess_windows`` lists it as a local disturbance)
 COLOURED_ALPHA = 0.01
@@ -137,13 +142,11 @@ def coloured_factor(t_s: np.ndarray, r: np.ndarray, width_s: float = 5.0, step_s
     v = v[(n >= min_rows) & (v > 0)]
     if len(v) < 3:
         return 1.0
-    lv = np.log(v)
-    spread = 1.4826 * float(np.median(np.abs(lv - np.median(lv))))
-    return float(np.exp(NormalDist().inv_cdf(1.0 - alpha / len(v)) * spread))
+    return float(np.exp(NormalDist().inv_cdf(1.0 - alpha / len(v)) * robust_std(np.log(v))))
 
 
-def excess_windows(t_s: np.ndarray, r: np.ndarray, sigma: float, *, factor: float = 2.0, width_s: float = 5.0,
-                   step_s: float = 2.5, min_rows: int = 10) -> list[Interval]:
+def excess_windows(t_s: np.ndarray, r: np.ndarray, sigma: float, *, factor: float = STRETCH_TIMES_NOISE,
+                   width_s: float = 5.0, step_s: float = 2.5, min_rows: int = 10) -> list[Interval]:
     """Intervals where the residual's sliding-window RMS exceeds ``factor`` x its noise there: the
     largest of ``sigma`` (the channel's robust scale), the rms of the residual's ``white_part``
     over the whole residual, and the same in the window (with ``min_rows`` of it).
