@@ -3,7 +3,7 @@
 On one short generated flight with a flow rotation gain (the flow group's residuals are exactly
 linear in the gain): the chi-square drop of a linear parameter is the closed-form quadratic in its
 size; the evidence is nothing for an effect of zero size and negative for one the recording does
-not hold; it is large for a large effect and grows like the effect's size. The pieces (the
+not hold; it is large for a large effect and grows with the effect's size. The pieces (the
 chi-square tail -> z conversion, the Newey-West variance) against closed forms.
 """
 
@@ -77,17 +77,22 @@ def test_an_effect_of_zero_size_or_absent_has_no_evidence(flights: dict[float, f
     assert abs(ev.drop + ev.signal) <= 6.0 * math.sqrt(ev.inflation * ev.signal)
 
 
-def test_the_evidence_is_large_for_a_large_effect_and_grows_like_its_size(
+def test_the_evidence_is_large_for_a_large_effect_and_grows_with_its_size(
         flights: dict[float, fg.Generated]) -> None:
     big = {g: orc.oracle(flights[g].tlog, flights[g].config, flights[g].truth)[GAIN] for g in (1.06, 1.12)}
     for ev in big.values():
         # the drop's expectation is +signal, the same noise term as above (3 sd)
         assert abs(ev.drop - ev.signal) <= 6.0 * math.sqrt(ev.inflation * ev.signal)
         assert ev.k == 1 and ev.z == pytest.approx(math.sqrt(ev.drop / ev.inflation), rel=1e-9)
+        # z of a one-parameter effect is sqrt(signal / inflation), (size) |u| / sqrt(V / signal), plus
+        # noise of unit variance (3 sd)
+        assert abs(ev.z - math.sqrt(ev.signal / ev.inflation)) <= 3.0
     assert big[1.12].z >= 10.0
-    # z of a one-parameter effect is (size) |u| / sqrt(V / signal) plus unit-variance noise: twice the
-    # size, twice the z, within 3 sd of z(2a) - 2 z(a), sqrt(1 + 4)
-    assert abs(big[1.12].z - 2.0 * big[1.06].z) <= 3.0 * math.sqrt(5.0)
+    # twice the size: more evidence by more than the noise of both (3 sd of the difference). Not
+    # twice the z: the two flights fly differently (the gain is in the loop), so |u| and the noise's
+    # autocovariance differ between them (inflation 0.85 and 1.39 at 5b8871b; 1.28 and 0.91 with
+    # the flow windows' start-velocity term)
+    assert big[1.12].z - big[1.06].z >= 3.0 * math.sqrt(2.0)
 
 
 def test_z_of_chi2_is_the_finders_conversion_and_goes_past_its_cap() -> None:
