@@ -90,8 +90,8 @@ def test_the_evidence_is_large_for_a_large_effect_and_grows_with_its_size(
     assert big[1.12].z >= 10.0
     # twice the size: more evidence by more than the noise of both (3 sd of the difference). Not
     # twice the z: the two flights fly differently (the gain is in the loop), so |u| and the noise's
-    # autocovariance differ between them (inflation 0.85 and 1.39 at 5b8871b; 1.28 and 0.91 with
-    # the flow windows' start-velocity term)
+    # autocovariance differ between them (inflation 0.85 and 1.39; 1.28 and 0.91 under the flow
+    # windows' start-velocity term tried in session 45, which this test's old "twice the z" failed)
     assert big[1.12].z - big[1.06].z >= 3.0 * math.sqrt(2.0)
 
 
