@@ -238,7 +238,7 @@ def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp
                ("translation / height", "a range error that grows at low height", "rad/m", YA[i]),
                ("other-axis translation", "the flow axes turned with respect to the motion", "rad", Y[o]),
                ("rotation squared", "a non-linear flow response", "rad^2", R[i][W] ** 2)]
-        return [Term(n, w, u, fstate.whiten[i](v @ fp.P).ravel()) for n, w, u, v in raw]
+        return [Term(n, w, u, fstate.whiten[i](fp.project_windows(v)).ravel()) for n, w, u, v in raw]
     return []
 
 

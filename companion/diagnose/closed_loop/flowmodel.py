@@ -12,12 +12,13 @@ that the closed loop cannot hide what it measures (the inputs are recorded signa
 simulation of the loop):
 
 ``flow_x``, ``flow_y`` (rad): over windows of ``flow_window_s`` the recorded scene angle minus the
-model's, after removing a cubic in time per window and axis (the unknown velocity at the window
-start and a slowly varying force: translation is smooth, so what remains is the rotation content,
-the part the plant's tilt predicts, and how the sensor's geometry distorts them). This is where
-``flow_scale`` (the rotation comes out scaled), ``flow_delay`` (the rotation comes out late),
-``flow_yaw_misalignment`` (one axis' rotation leaks into the other) and, weakly, ``range_offset``
-show.
+model's, after removing per window and axis a cubic in time and the scene angle the window's
+unknown start velocity adds, v0 times the integral of 1 / A (``project_windows``: the unknown
+velocity at the window start and a slowly varying force; translation is smooth, so what remains
+is the rotation content, the part the plant's tilt predicts, and how the sensor's geometry
+distorts them). This is where ``flow_scale`` (the rotation comes out scaled), ``flow_delay`` (the
+rotation comes out late), ``flow_yaw_misalignment`` (one axis' rotation leaks into the other) and,
+weakly, ``range_offset`` show.
 
 ``force_x``, ``force_y`` (N): over windows of ``force_window_s`` the change in flow-derived velocity
 minus the change the tilt explains, times m / window length: the mean horizontal force the model
@@ -49,6 +50,10 @@ PARAMS = ("scale_x", "scale_y", "yaw", "delay", "offset", "b", "fx", "fy", "gain
 NOMINAL = np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
 IDX = {p: i for i, p in enumerate(PARAMS)}
 
+
+#: a window's start-velocity direction (``FlowProblem._start_velocity_directions``) is removed
+#: when what the cubic leaves of it is at least this share of it (below: round-off of a constant A)
+START_VELOCITY_MIN_SHARE = 1e-9
 
 #: flow windows with more bridged (lost) frames than this share, or a run of bridged frames longer
 #: than ``BRIDGED_RUN_MAX`` frames, are left out of the flow and force channels
@@ -366,6 +371,7 @@ class FlowProblem:
         #: increments either side of each that the flow residual takes its step from there
         #: (``flow_residual``)
         self._lost = _bridge_plan(~self.data.flow_rec[W][:, 1:] if len(W) else np.zeros((0, self.L1 - 1), dtype=bool))
+        self._U = self._start_velocity_directions(W)
         self._Rw = self.R[:, W]  # constant gathers of every flow-residual evaluation
         self._RAw = self.RA[:, W]
         self._trans_cache = _Cache()
@@ -375,6 +381,44 @@ class FlowProblem:
         self._proj_rot = _Cache(4)
         self._proj_trans = _Cache()
         self._shift_cache = _Cache(4)
+
+    def _start_velocity_directions(self, W: np.ndarray) -> np.ndarray:
+        """(n_windows, L1): per flow window, the unit direction of what its unknown start velocity
+        v0 adds to the scene angle, v0 times the integral of 1 / A from the window's start, with the
+        cubic removed (``project_windows``); zero where the range is constant enough over the window
+        for the cubic to hold it all, and where the window's speed (the flow's odometry under the
+        nominal geometry) times that direction's rms stays under the flow's resolution (a count's
+        rounding: what the cubic then misses is below what the sensor resolves, and the window keeps
+        the freedom; removed everywhere, it took enough of a 0.05 m range offset's evidence on the
+        issue's old matrix, range_offset-a, for a flow scale and a rotation gain to be named instead).
+
+        Why: the cubic holds v0's translation only while the height A is constant over the window.
+        A vehicle that pitches 17 deg either way at 1 m reads a slant range that swings 1.01-1.08 m
+        twice a manoeuvre, and v0 times that swing's integral is left in the residual: on a
+        noise-free generator flight (seed 1000171, a 0.5 Hz sine at 1 m) 92 % of its flow residual,
+        fitted as a range offset of +0.10 m, a flow scale of 0.97 or a rotation gain of 1.02."""
+        if len(W) == 0:
+            return np.zeros((0, self.L1))
+        inv = 1.0 / self.A
+        inc = 0.5 * (inv[W[:, 1:]] + inv[W[:, :-1]]) * (self.t[W[:, 1:]] - self.t[W[:, :-1]])
+        integral = np.concatenate([np.zeros((len(W), 1)), np.cumsum(inc, axis=1)], axis=1)
+        u = integral @ self.P
+        size = np.linalg.norm(u, axis=1)
+        whole = np.linalg.norm(integral, axis=1)
+        ok = np.isfinite(size) & (size > START_VELOCITY_MIN_SHARE * whole)
+        # where the window's speed times that direction stays under the flow's own rounding, the
+        # cubic's error is below what the sensor resolves: left to the cubic (no freedom lost)
+        X, _ = self._flow_velocity_uncached(NOMINAL)  # the windows are being set: no cache yet
+        v = np.hypot(*(X[:, W[:, -1]] - X[:, W[:, 0]])) / np.maximum(self.t[W[:, -1]] - self.t[W[:, 0]], 1e-9)
+        ok &= v * size / math.sqrt(self.L1) >= self.data.flow_resolution_rad
+        return np.where(ok[:, None], u / np.where(ok, size, 1.0)[:, None], 0.0)
+
+    def project_windows(self, z: np.ndarray) -> np.ndarray:
+        """A flow-window signal z (..., n_windows, L1) with each window's cubic in time and its
+        start velocity's translation (``_start_velocity_directions``) removed: the nuisance the
+        flow residual does not model (both are linear in z)."""
+        zp = z @ self.P
+        return zp - np.sum(zp * self._U, axis=-1, keepdims=True) * self._U
 
     def keep_flow_windows(self, keep: np.ndarray) -> None:
         """Leave the flow windows where not ``keep`` ((n_windows,) bool) out of the flow channels
@@ -410,9 +454,9 @@ class FlowProblem:
     # -- model pieces --------------------------------------------------------------------------
 
     def window_rotation(self) -> np.ndarray:
-        """The rotation R over each flow window with the window's cubic removed, as the flow
-        residual sees it: (2, n_windows, L1), rad."""
-        return self._Rw @ self.P
+        """The rotation R over each flow window with the window's nuisance removed
+        (``project_windows``), as the flow residual sees it: (2, n_windows, L1), rad."""
+        return self.project_windows(self._Rw)
 
     def _rotation_at(self, delay_s: float) -> np.ndarray:
         """R(t - delay) at the flow windows' frames, (2, n_windows, L1): cubic spline through the
@@ -501,7 +545,8 @@ class FlowProblem:
         return out
 
     def flow_residual(self, p: np.ndarray) -> np.ndarray:
-        """``flow_x``, ``flow_y`` window residuals (rad), shape (2, n_windows, L1), cubic removed."""
+        """``flow_x``, ``flow_y`` window residuals (rad), shape (2, n_windows, L1), each window's
+        nuisance removed (``project_windows``)."""
         W = self.flow.idx
         if len(W) == 0:
             return np.zeros((2, 0, self.L1))
@@ -524,7 +569,8 @@ class FlowProblem:
 
     def _projected(self, z: np.ndarray) -> np.ndarray:
         """A flow-window signal z (2, n_windows, L1) as the flow residual takes it: its steps into
-        lost frames bridged, then the window's cubic removed. Both are linear in z."""
+        lost frames bridged, then the window's nuisance removed (``project_windows``). Both are
+        linear in z."""
         if self._lost is not None:
             # a lost frame's increment was bridged from the attitude's rotation (no delay, no
             # gain, no scale) and the neighbours' translation: the extraction's guess, not a
@@ -535,7 +581,7 @@ class FlowProblem:
             inc = np.diff(z, axis=-1)
             inc[:, w, j] = al * inc[:, w, jl] + (1.0 - al) * inc[:, w, jr]
             z = np.concatenate([z[..., :1], z[..., :1] + np.cumsum(inc, axis=-1)], axis=-1)
-        return z @ self.P
+        return self.project_windows(z)
 
     def flow_velocity(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Odometry from the flow under the model's sensor geometry: X (2, n) in m (per segment,
