@@ -587,6 +587,29 @@ def test_a_start_velocity_under_the_flows_rounding_is_left_to_the_cubic():
     assert 0 < n_some < n_every and every < some < none
 
 
+def test_an_anchored_problem_loses_the_same_nuisance_as_its_base():
+    """Which windows lose the start velocity's direction depends on the flow's speed there, and the
+    problem the effects' regressors come from reads another scene angle (``groups`` builds it
+    synthetic). Anchored to the base (``FlowProblem.anchor``), its residual's change with the
+    parameters must lose what the base's residual lost: per window, nothing along the base's
+    direction. A regressor problem whose scene angle is half the base's would gate fewer windows
+    by its own speed, and leave its change along the base's direction there."""
+    import dataclasses
+
+    fd = dataclasses.replace(synthetic_flow_flight(height=(1.0, 0.05, 1.0)), flow_resolution_rad=2.6e-4)
+    base = FlowProblem(fd, mass_kg=M, gravity_m_s2=G)
+    half = FlowProblem(fd, mass_kg=M, gravity_m_s2=G, scene_angle=0.5 * base.Phi)
+    own = np.any(half._U != 0.0, axis=1)
+    gated = np.any(base._U != 0.0, axis=1)
+    assert np.any(gated & ~own)  # the half-speed problem would keep some of the base's windows
+    half.anchor(base)
+    p = _p(scale=(1.1, 0.9), offset=0.05)
+    change = half.flow_residual(p) - half.flow_residual(NOMINAL)
+    along = np.abs(np.sum(change * base._U, axis=-1))
+    assert np.max(along) <= 1e-12 * np.max(np.abs(change))
+    np.testing.assert_allclose(half.flow_residual(NOMINAL), base.flow_residual(NOMINAL), rtol=0, atol=1e-15)
+
+
 def test_force_channel_odometry_equals_the_frame_by_frame_one(exact_flight):
     """``force_parts`` combines the odometry's window changes from per-signal pieces (linear in the
     geometry); they equal the frame-by-frame odometry of ``flow_velocity`` (its window changes, and

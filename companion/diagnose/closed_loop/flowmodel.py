@@ -12,10 +12,10 @@ that the closed loop cannot hide what it measures (the inputs are recorded signa
 simulation of the loop):
 
 ``flow_x``, ``flow_y`` (rad): over windows of ``flow_window_s`` the recorded scene angle minus the
-model's, after removing per window and axis a cubic in time and the scene angle the window's
-unknown start velocity adds, v0 times the integral of 1 / A (``project_windows``: the unknown
-velocity at the window start and a slowly varying force; translation is smooth, so what remains
-is the rotation content, the part the plant's tilt predicts, and how the sensor's geometry
+model's, after removing per window and axis a cubic in time and, where it shows, the scene angle
+the window's unknown start velocity adds, v0 times the integral of 1 / A (``project_windows``: the
+unknown velocity at the window start and a slowly varying force; translation is smooth, so what
+remains is the rotation content, the part the plant's tilt predicts, and how the sensor's geometry
 distorts them). This is where ``flow_scale`` (the rotation comes out scaled), ``flow_delay`` (the
 rotation comes out late), ``flow_yaw_misalignment`` (one axis' rotation leaks into the other) and,
 weakly, ``range_offset`` show.
@@ -448,6 +448,13 @@ class FlowProblem:
         p_a = NOMINAL if p_anchor is None else p_anchor
         self._flow_offset = None
         self._force_offset = None
+        # the windows' nuisance is the base's: which windows take the start velocity's direction
+        # depends on the flow's speed there, and this problem's scene angle may be another's (the
+        # regressors' synthetic one); the residual and its change with p must lose the same part
+        self._U = base._U
+        self._proj_fixed = None
+        self._proj_rot = _Cache(4)
+        self._proj_trans = _Cache()
         self._flow_offset = base.flow_residual(p_a) - self.flow_residual(p_a)
         self._force_offset = base.force_residual(p_a) - self.force_residual(p_a)
 
