@@ -375,12 +375,16 @@ class FlowProblem:
         self._Rw = self.R[:, W]  # constant gathers of every flow-residual evaluation
         self._RAw = self.RA[:, W]
         self._trans_cache = _Cache()
-        #: ``_projected`` pieces of the flow residual: the scene angle and the lever-arm rotation
-        #: (made once), the rotation per delay, the translation per (offset, delay)
+        self._forget_projections()
+        self._shift_cache = _Cache(4)
+
+    def _forget_projections(self) -> None:
+        """Empty the ``_projected`` pieces of the flow residual: the scene angle and the lever-arm
+        rotation (made once), the rotation per delay, the translation per (offset, delay). They hold
+        the windows' nuisance (``_U``), so they go whenever it changes."""
         self._proj_fixed: tuple[np.ndarray, np.ndarray] | None = None
         self._proj_rot = _Cache(4)
         self._proj_trans = _Cache()
-        self._shift_cache = _Cache(4)
 
     def _start_velocity_directions(self, W: np.ndarray) -> np.ndarray:
         """(n_windows, L1): per flow window, the unit direction of what its unknown start velocity
@@ -399,9 +403,8 @@ class FlowProblem:
         fitted as a range offset of +0.10 m, a flow scale of 0.97 or a rotation gain of 1.02."""
         if len(W) == 0:
             return np.zeros((0, self.L1))
-        inv = 1.0 / self.A
-        inc = 0.5 * (inv[W[:, 1:]] + inv[W[:, :-1]]) * (self.t[W[:, 1:]] - self.t[W[:, :-1]])
-        integral = np.concatenate([np.zeros((len(W), 1)), np.cumsum(inc, axis=1)], axis=1)
+        cum = self._cum(1.0 / self.A)  # windows lie within a segment
+        integral = cum[W] - cum[W[:, :1]]
         u = integral @ self.P
         size = np.linalg.norm(u, axis=1)
         whole = np.linalg.norm(integral, axis=1)
@@ -452,9 +455,7 @@ class FlowProblem:
         # depends on the flow's speed there, and this problem's scene angle may be another's (the
         # regressors' synthetic one); the residual and its change with p must lose the same part
         self._U = base._U
-        self._proj_fixed = None
-        self._proj_rot = _Cache(4)
-        self._proj_trans = _Cache()
+        self._forget_projections()
         self._flow_offset = base.flow_residual(p_a) - self.flow_residual(p_a)
         self._force_offset = base.force_residual(p_a) - self.force_residual(p_a)
 
