@@ -284,6 +284,78 @@ def test_a_late_loop_is_fitted_as_late_across_lost_commands(lost_frac):
     assert abs(final.p[2] - 0.06) < 0.005, final.p
 
 
+
+def _lossy_loop_flight(noise_deg: float, lost_frac: float, seed: int, n: int) -> FlightData:
+    """The exact zero-order-hold loop (9 rad/s, 0.7) at no delay answering commands that step by
+    up to 0.05 rad every second with 5 mrad of frame-to-frame jitter, ``noise_deg`` of white
+    attitude noise, the gyro's angle the exact one; ``lost_frac`` of the commands lost at random
+    and bridged linearly, as ``channels.extract`` bridges them."""
+    rng = np.random.default_rng(seed)
+    T = 0.02
+    t = np.arange(n) * T
+    Ad, Bd, _b, _a = discretise(9.0, 0.7, T)
+    lost = rng.random(n) < lost_frac
+    lost[:5] = lost[-5:] = False
+    cols: dict[str, np.ndarray] = {}
+    for ang, cmd, gyr, gang in (("roll_rad", "roll_cmd_rad", "gyro_x_rad_s", "gyro_angle_x_rad"),
+                                ("pitch_rad", "pitch_cmd_rad", "gyro_y_rad_s", "gyro_angle_y_rad")):
+        u = np.repeat(rng.uniform(-0.05, 0.05, n // 50 + 1), 50)[:n] + 0.005 * rng.standard_normal(n)
+        u[:100] = 0.0
+        x, y, rate = np.zeros(2), np.zeros(n), np.zeros(n)
+        for k in range(n):
+            y[k], rate[k] = x
+            x = Ad @ x + Bd * u[k]
+        cols[ang] = y + math.radians(noise_deg) * rng.standard_normal(n)
+        cols[gyr], cols[gang] = rate, y.copy()
+        cols[cmd] = np.where(lost, np.interp(t, t[~lost], u[~lost]), u)
+    data = _flight_data(t, **cols)
+    data.cmd_rec = ~lost
+    return data
+
+
+def test_restarts_after_lost_commands_are_chosen_by_the_flight():
+    """``restart_choice``: with a noise-free attitude a restart is exact and every run of lost
+    commands restarts; with 0.3 deg of attitude noise a restart carries that noise on, the
+    interpolated commands far less, and the single lost commands are bridged. The attitude noise
+    it judges with is the truth's within 10 %; the bridge's cost is the loop's answer to the
+    interpolation error, whose quadratic form against the pulse's autocorrelation equals the
+    answer's energy summed frame by frame (an independent convolution here)."""
+    from companion.diagnose.closed_loop.attitude import _pulse_responses, restart_choice
+
+    clean = restart_choice(_lossy_loop_flight(0.0, 0.15, 1, 4000), 9.0, 0.7)
+    assert clean.restart.all() and clean.note is None and clean.attitude_noise_rad < 1e-6
+    noisy = restart_choice(_lossy_loop_flight(0.3, 0.15, 1, 4000), 9.0, 0.7)
+    assert not noisy.restart[1] and noisy.restart[-1] and "goes on across runs of 1" in (noisy.note or "")
+    assert abs(noisy.attitude_noise_rad / math.radians(0.3) - 1.0) < 0.1
+    r, g = _pulse_responses(9.0, 0.7, 0.02, 200)
+    assert g[0] == 1.0 and r[0] == 0.0 and r[1] > 0  # the pulse shows from the next frame
+    e = np.random.default_rng(2).normal(size=4)
+    rho = np.array([r[:200 - d] @ r[d:] for d in range(4)])
+    quad = e @ rho[np.abs(np.subtract.outer(np.arange(4), np.arange(4)))] @ e
+    assert quad == pytest.approx(np.sum(np.convolve(r, e) ** 2), rel=1e-12)
+
+
+def test_a_noisy_attitude_with_lost_commands_is_not_read_as_another_loop(monkeypatch):
+    """400 s of the nominal loop with 0.3 deg of white attitude noise and 15 % of its commands lost:
+    nothing is found. Restarting from the recorded attitude after every lost command (as the
+    finder did) reads the noise the restarts carry on as a faster loop with a delay (12.9 rad/s,
+    zeta 0.96 and 26 ms on these draws)."""
+    from companion.diagnose.closed_loop import groups
+    from companion.diagnose.closed_loop.attitude import RestartChoice
+
+    data = _lossy_loop_flight(0.3, 0.15, 1, 20000)
+    cfg = load_config()
+    cfg = dataclasses.replace(cfg, airframe=dataclasses.replace(cfg.airframe, omega_p_rad_s=9.0, zeta=0.7))
+    g, _ap = attitude_group(data, cfg)
+    chosen, _final, _ev = Selector(g, Settings(), 0.0).select()
+    assert chosen == [], chosen
+    always = RestartChoice(np.ones(2, dtype=bool), math.nan, None)
+    monkeypatch.setattr(groups, "restart_choice", lambda *_a: always)
+    g, _ap = attitude_group(_lossy_loop_flight(0.3, 0.15, 1, 20000), cfg)
+    chosen, final, _ev = Selector(g, Settings(), 0.0).select()
+    assert "attitude_dynamics" in chosen and final.p[0] > 10.0, (chosen, final.p)
+
+
 def _loop_flight(shaper_tau_s: float, omega_p: float, zeta: float, seed: int, n: int = 6000,
                  noise_deg: float = 0.05) -> FlightData:
     """120 s of attitude: per axis, commands that step every second (+-0.15 rad) with 0.02 rad of

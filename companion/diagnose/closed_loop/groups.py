@@ -23,7 +23,7 @@ import numpy as np
 
 from companion.config import Config
 from companion.diagnose import filters
-from companion.diagnose.closed_loop.attitude import AttitudeProblem
+from companion.diagnose.closed_loop.attitude import AttitudeProblem, restart_choice
 from companion.diagnose.closed_loop.channels import FlightData
 from companion.diagnose.closed_loop.flowmodel import AXIS_SIGN, IDX, NOMINAL, PARAMS, FlowProblem
 from companion.diagnose.closed_loop.select import Candidate, Group, block_meat, robust_std
@@ -108,7 +108,7 @@ def _loop_delay_frames(ap: AttitudeProblem, data: FlightData, omega_p: float, ze
         for a in starts:
             mask[a:a + block] = True
         data = data.take(mask)
-        ap = AttitudeProblem(data)
+        ap = AttitudeProblem(data, ap.restart)
     m = 0
     for _round in range(4):
         rows = attitude_rows(data, m)
@@ -127,8 +127,11 @@ def _loop_delay_frames(ap: AttitudeProblem, data: FlightData, omega_p: float, ze
 
 
 def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProblem]:
-    ap = AttitudeProblem(data)
     wp, z = cfg.airframe.omega_p_rad_s, cfg.airframe.zeta
+    choice = restart_choice(data, wp, z)
+    if choice.note:
+        data.notes.append(choice.note)
+    ap = AttitudeProblem(data, choice.restart)
     T = data.frame_s
     rows = attitude_rows(data)
     if np.any(~data.cmd_rec) and np.any(rows):
