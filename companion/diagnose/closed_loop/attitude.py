@@ -172,7 +172,7 @@ def restart_choice(data: FlightData, omega_p: float, zeta: float) -> RestartChoi
     attitude noise and 14 % of its commands lost read a loop of 8.6 rad/s, zeta 1.44 and a 12 ms
     delay against the nominal and true 6.65 and 1.13; gen_0097 read a 58 ms delay as a slower
     loop. With a noise-free attitude the restart is exact, and simulating on across every lost
-    command left the bridge's error as local disturbances (eleven of the matrix's recordings)."""
+    command left the bridge's error as local disturbances (seven of the reference recordings)."""
     T = data.frame_s
     m_max = max(1, int(round(RESTART_DECIDE_MAX_S / T)))
     restart = np.ones(m_max + 1, dtype=bool)
