@@ -28,6 +28,7 @@ import numpy as np
 from companion import native
 from companion.diagnose import filters
 from companion.diagnose.closed_loop.channels import FlightData
+from companion.diagnose.closed_loop.select import robust_std
 
 #: a run of lost (bridged) commands restarts the attitude simulation from the recorded attitude
 #: when this flight says a restart carries less error than simulating on across the bridge
@@ -184,10 +185,9 @@ def restart_choice(data: FlightData, omega_p: float, zeta: float) -> RestartChoi
     var_a = []
     for att, G in ((data.roll_rad, gx), (data.pitch_rad, gy)):
         d = (np.diff(att) - np.diff(G))[pair]
-        d = d[np.isfinite(d)]
-        if len(d) < RESTART_SAMPLES_MIN:
+        if np.count_nonzero(np.isfinite(d)) < RESTART_SAMPLES_MIN:
             return RestartChoice(restart, math.nan, None)
-        var_a.append((1.4826 * float(np.median(np.abs(d - np.median(d))))) ** 2 / 2.0)  # two samples' noise
+        var_a.append(robust_std(d) ** 2 / 2.0)  # the difference holds two samples' noise
     sigma2 = float(np.mean(var_a))
     decay = omega_p * (zeta - math.sqrt(zeta * zeta - 1.0) if zeta > 1.0 else zeta)
     L = int(min(max(math.ceil(RESTART_RESPONSE_DECAYS / (decay * T)), 10), 1000))
