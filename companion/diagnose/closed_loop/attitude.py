@@ -126,6 +126,12 @@ def masked_row_means(e: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return out
 
 
+def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The runs of True in ``mask``: their first indices and the indices just past them."""
+    x = np.diff(np.concatenate([[0], mask.astype(int), [0]]))
+    return np.flatnonzero(x == 1), np.flatnonzero(x == -1)
+
+
 def _pulse_responses(omega_p: float, zeta: float, T: float, L: int) -> tuple[np.ndarray, np.ndarray]:
     """The loop's angle over L frames (zero-order hold, exact): (its answer to a command of 1
     over the first frame only, its free response to a start angle of 1 at no rate)."""
@@ -199,9 +205,9 @@ def restart_choice(data: FlightData, omega_p: float, zeta: float) -> RestartChoi
     ok = data.cmd_rec & np.all(np.isfinite(u), axis=0)
     ok_pair = np.concatenate([[False], ok[1:] & ok[:-1] & same])  # frames k - 1 and k recorded, one segment
     bad = np.concatenate([[0], np.cumsum(~ok_pair)])
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], (~data.cmd_rec).astype(int), [0]])))
+    k0, k1 = _runs(~data.cmd_rec)
     bridged = []
-    for m in np.unique(edges[1::2] - edges[0::2]).tolist():  # the lengths of this flight's runs
+    for m in np.unique(k1 - k0).tolist():  # the lengths of this flight's runs of lost commands
         if m > m_max:
             continue
         i = np.arange(1, max(data.n - m, 1))  # a gap i..i+m-1 between the ends i-1 and i+m
@@ -253,8 +259,7 @@ class AttitudeProblem:
             lost = ~data.cmd_rec[a:b]
             cuts = np.array([a, b])
             if np.any(lost):
-                x = np.diff(np.concatenate([[0], lost.astype(int), [0]]))
-                k0, k1 = a + np.flatnonzero(x == 1), a + np.flatnonzero(x == -1)  # lost commands k0..k1-1
+                k0, k1 = (a + k for k in _runs(lost))  # lost commands k0..k1-1
                 jump = np.max(np.abs(u[:, np.minimum(k1, b - 1)] - u[:, np.maximum(k0 - 1, a)]), axis=0)
                 runs = k1 - k0
                 by_length = np.ones(len(runs), dtype=bool) if restart is None else \

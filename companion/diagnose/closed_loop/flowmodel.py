@@ -358,8 +358,9 @@ class FlowProblem:
         self._flow_offset: np.ndarray | None = None
         self._force_offset: np.ndarray | None = None
 
-    def _set_flow_windows(self, W: np.ndarray) -> None:
-        """The flow channels' windows W (n_windows, L1) of frame indices, and their constants."""
+    def _set_flow_windows(self, W: np.ndarray, U: np.ndarray | None = None) -> None:
+        """The flow channels' windows W (n_windows, L1) of frame indices, and their constants;
+        ``U``: their start-velocity directions when known (each window's is its own), else made."""
         t = self.t
         self.flow = Windows(W, t[W[:, 0]] if len(W) else np.zeros(0), t[W[:, -1]] if len(W) else np.zeros(0))
         seg_of = np.searchsorted([b for _a, b in self.data.segments()], W[:, 0], side="right") if len(W) \
@@ -371,7 +372,7 @@ class FlowProblem:
         #: increments either side of each that the flow residual takes its step from there
         #: (``flow_residual``)
         self._lost = _bridge_plan(~self.data.flow_rec[W][:, 1:] if len(W) else np.zeros((0, self.L1 - 1), dtype=bool))
-        self._U = self._start_velocity_directions(W)
+        self._U = self._start_velocity_directions(W) if U is None else U
         self._Rw = self.R[:, W]  # constant gathers of every flow-residual evaluation
         self._RAw = self.RA[:, W]
         self._trans_cache = _Cache()
@@ -430,7 +431,7 @@ class FlowProblem:
         Before ``anchor``."""
         if self._flow_offset is not None:
             raise ValueError("keep_flow_windows: an anchored problem's windows are fixed")
-        self._set_flow_windows(self.flow.idx[keep])
+        self._set_flow_windows(self.flow.idx[keep], self._U[keep])
 
     def anchor(self, base: FlowProblem, p_anchor: np.ndarray | None = None) -> None:
         """Take the residual at ``p_anchor`` (the nominal when None) from ``base`` (the same flight,
