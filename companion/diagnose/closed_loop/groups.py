@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.linalg import cholesky_banded, solve_banded
 
 from companion.config import Config
 from companion.diagnose import filters
@@ -185,8 +186,11 @@ class GyroProblem:
             have = np.arange(data.n)
         a, b = have[:-1], have[1:]
         ok = (seg[a] == seg[b]) & (b - a <= self.MAX_SPAN_FRAMES)
-        if np.mean(data.gyro_rec) >= 0.75:  # a gyro at the frame rate: its lost samples are not guessed at
-            ok &= data.gyro_rec[a] & data.gyro_rec[b]
+        if np.mean(data.gyro_rec) >= 0.75:  # a gyro at the frame rate: its lost samples are not guessed at,
+            # at the interval's ends or within it (a bridged sample's error, 0.12 rad/s over a 3-frame
+            # interval of --seed 1 gen_0169 against a 0.01 rad/s noise, is no noise of the model's)
+            lost = np.concatenate([[0], np.cumsum(~data.gyro_rec)])
+            ok &= lost[b + 1] == lost[a]
         a, b = a[ok], b[ok]
         self.k = b
         self.k_prev = a
@@ -224,6 +228,12 @@ class GyroProblem:
             self.gyro = np.where(covered, (S[:2, b] - S[:2, a]) / dt, self.gyro)
             self.dgyro = np.where(covered, (S[2:, b] - S[2:, a]) / dt, self.dgyro)
         self.r = self.gyro - self.rate
+        self.dt_s = dt
+        #: per axis, the filter the group's rows go through (``gyro_whitener``; set by ``gyro_group``)
+        self.whiten: list[Callable[[np.ndarray], np.ndarray]] = [lambda r: r, lambda r: r]
+        self.noise: list[GyroNoise] = []
+        #: the lag the nominal model carries: the stamps' timing (``_gyro_stamp_alignment``)
+        self.timing_offset_s = 0.0
 
 
 #: frames between a lag interval's ends and the gyro samples its instruments are made of
@@ -352,23 +362,151 @@ def flow_timing_sigma_s(data: FlightData, rotation_stream: str | None) -> float:
     return math.hypot(stamps, FLOW_FRAME_TIMING_SHARE * data.frame_s)
 
 
+@dataclass
+class GyroNoise:
+    """The gyro residual's noise model per axis (``gyro_whitener``)."""
+
+    attitude_white_rad: float  #: the attitude's white noise, sigma (rad)
+    rest_rad: float  #: the rest of an interval's angle noise, sigma over a median interval (rad)
+
+
+#: the span (s) over which ``gyro_whitener`` measures the part of the gyro residual's noise that is
+#: not the attitude's white noise
+GYRO_NOISE_SPAN_S = 0.5
+
+
+def gyro_whitener(gp: GyroProblem) -> tuple[list[Callable[[np.ndarray], np.ndarray]], list[GyroNoise]]:
+    """Per axis, the filter that whitens the gyro residual's rows (``GyroProblem``), and the noise
+    model it is made from: an interval's residual is the change of the attitude's white noise
+    (sigma_a) over it divided by its length, plus noise of its own (the gyro's, the attitude's
+    coloured noise; white, its angle variance growing with the interval's length). So two intervals
+    that share an end (``k_prev`` of one is ``k`` of the other) have a covariance of
+    -sigma_a^2 / (dt_1 dt_2): a tridiagonal covariance C. Its two variances are measured on the
+    nominal residual e in angle units, robustly (1.4826 x MAD about the median, so a bias does not
+    count): D1 the variance of one interval's e, DK that of the sum of K adjacent ones spanning
+    ``GYRO_NOISE_SPAN_S``; by the model D1 = 2 sigma_a^2 + rest^2 and DK = 2 sigma_a^2 + K rest^2.
+    The rest is thus whatever grows over half a second, the model's white part and whatever slow
+    error the model leaves out as well (a coloured attitude, bridged samples, the stamps' timing),
+    and the filter's memory is no longer than that rest allows. The filter is
+    the inverse of C's banded Cholesky factor (the innovations), scaled back to rad/s by the
+    factor's median diagonal, so a row's unit and size stay about those of an interval's
+    innovation; the whole is least squares weighted by C (generalised least squares).
+
+    Why: an attitude estimate's white noise, differenced over 20 ms, is most of the residual (0.3
+    mrad gives 21 mrad/s) and it is blue: nearly all of it at the frame rate, where a gyro lag's or
+    bias's signature has little. Least squares weighs every frequency alike, and the lag's share of
+    that residual is small however sure its fit. On the generalisation matrix's --seed 1 gen_0240
+    (a 45 s hover, a 49.5 ms lag, 0.3 mrad of attitude noise) the lag lowered the held-out residual
+    by 3.1 % (held-out z 1.9) and was turned down; on the whitened rows by 14 % (z 7.0), and it is
+    named (51.4 +- 1.9 ms). Without white attitude noise (sigma_a^2 nil) C is diagonal and the rows
+    are only weighed by their interval's length."""
+    n = len(gp.k)
+    filters_: list[Callable[[np.ndarray], np.ndarray]] = []
+    noise: list[GyroNoise] = []
+    if n < 3:
+        return [lambda r: r, lambda r: r], [GyroNoise(0.0, 0.0), GyroNoise(0.0, 0.0)]
+    dt = gp.dt_s
+    adj = gp.k_prev[1:] == gp.k[:-1]
+    ref = float(np.median(dt))
+    # the residual's angle over K intervals in a row: K spans GYRO_NOISE_SPAN_S (at least 2)
+    K = max(2, int(round(GYRO_NOISE_SPAN_S / ref)))
+    brk = np.concatenate([[0], np.cumsum(~adj)])  # breaks before each row
+    for i in (0, 1):
+        e = (gp.gyro[i] - gp.rate[i]) * dt  # the nominal residual in angle units (rad per interval)
+        fin = np.isfinite(e)
+        Y = np.concatenate([[0.0], np.cumsum(np.where(fin, e, 0.0))])  # Y[j]: the sum of rows before j
+        bad = np.concatenate([[0], np.cumsum(~fin)])
+        j = np.arange(n - K + 1)
+        whole = (brk[j + K - 1] == brk[j]) & (bad[j + K] == bad[j])  # K adjacent finite rows from j
+        one = fin & (np.abs(dt - ref) < 0.25 * ref)
+        if np.count_nonzero(whole) < 20 or np.count_nonzero(one) < 20:
+            filters_.append(lambda r: r)
+            noise.append(GyroNoise(0.0, 0.0))
+            continue
+        d1 = robust_std(e[one]) ** 2
+        dk = robust_std((Y[j + K] - Y[j])[whole]) ** 2
+        rest2 = max((dk - d1) / (K - 1), 1e-3 * d1, 1e-30)  # kept off nil: C stays well conditioned
+        sa2 = max(0.5 * (d1 - rest2), 0.0)
+        var = (2.0 * sa2 + rest2 * dt / ref) / dt ** 2
+        off = np.where(adj, -sa2 / (dt[:-1] * dt[1:]), 0.0)
+        ab = np.zeros((2, n))
+        ab[0, 1:] = off
+        ab[1] = var
+        U = cholesky_banded(ab, lower=False)  # C = U' U
+        low = np.zeros((2, n))
+        low[0] = U[1]
+        low[1, :-1] = U[0, 1:]
+        scale = float(np.median(U[1]))
+
+        def apply(r: np.ndarray, low: np.ndarray = low, scale: float = scale) -> np.ndarray:
+            out = np.full(r.shape, np.nan)
+            fin = np.isfinite(r)
+            if np.all(fin):
+                return solve_banded((1, 0), low, r) * scale
+            out[fin] = solve_banded((1, 0), low, np.where(fin, r, 0.0))[fin] * scale
+            return out
+
+        filters_.append(apply)
+        noise.append(GyroNoise(math.sqrt(sa2), math.sqrt(rest2)))
+    return filters_, noise
+
+
 def gyro_group(data: FlightData) -> tuple[Group, GyroProblem]:
     gp = GyroProblem(data)
+    whiten, gp.noise = gyro_whitener(gp)
+    gp.whiten = whiten
 
     def residuals(p: np.ndarray) -> list[np.ndarray]:
         r = gp.gyro + p[2] * gp.dgyro - gp.rate
-        return [r[0] - p[0], r[1] - p[1]]
+        return [whiten[0](r[0] - p[0]), whiten[1](r[1] - p[1])]
 
     g = Group(
         name="gyro", params=("bias_x", "bias_y", "tau"), nominal=np.zeros(3), steps=np.array([1e-4, 1e-4, 5e-4]),
         timing=("tau", timing_sigma_s(data, "gyro", "attitude")),
         lower=np.array([-2.0, -2.0, 0.0]), upper=np.array([2.0, 2.0, 0.3]), channels=("gyro_x", "gyro_y"),
         units=("rad/s", "rad/s"), floors=(max(data.gyro_resolution_rad_s, 1e-5),) * 2, residuals=residuals,
-        row_times=[gp.t_s, gp.t_s],
+        # coloured: the whitened rows keep what their noise model leaves out (an estimator's attitude
+        # error is not white: ArduCopter SITL flight C0's whitened gyro residual has lag-1 to 3
+        # correlations of 0.31, 0.23 and 0.31), so a stretch is judged against the typical window too
+        row_times=[gp.t_s, gp.t_s], coloured=(True, True),
         candidates=[Candidate("gyro_bias", ("bias_x", "bias_y"), matters=threshold("gyro_bias")),
                     Candidate("gyro_lag", ("tau",), physical=_positive_lag, matters=threshold("gyro_lag"))],
         linear=("bias_x", "bias_y", "tau"))
+    bound = STAMP_ALIGN_SIGMAS * timing_sigma_s(data, "gyro", "attitude")
+    g.nominal[2] = gp.timing_offset_s = _gyro_stamp_alignment(g, bound)
+    g.lower[2] = min(0.0, gp.timing_offset_s)
+    if abs(gp.timing_offset_s) >= 1e-5:
+        data.notes.append(f"the gyro's timing against the attitude aligned by {1e3 * gp.timing_offset_s:+.2f} ms (the "
+                          f"stamps leave +-{1e3 * bound:.2f} ms uncertain): the nominal model's gyro lag")
     return g, gp
+
+
+def _gyro_stamp_alignment(g: Group, bound_s: float) -> float:
+    """The gyro lag, within +-``bound_s``, that the gyro channels ask for at the nominal model:
+    least squares of the lag with both axes' biases on the whitened rows (the residuals are linear
+    in all three), clipped.
+
+    Why, as for the flow (``_stamp_alignment``): a timing error between the gyro's stamps and the
+    attitude's is a lag (either sign), which stamps in whole ms leave uncertain by 0.29 ms. Through
+    the whitened rows (``gyro_whitener``) a residual that slow stands far above its noise: on the
+    generalisation matrix's clean gen_0177 (no attitude or gyro noise, attitude stamps in ms) a
+    -0.27 ms lag left the gyro channels five unexplained entries (a lag over the whole flight, four
+    "local disturbances" where it turned most). A lag that small is not a finding (under 2 ms,
+    ``sizes``); the nominal model carries it, and a gyro lag is judged from it."""
+    if not bound_s > 0:
+        return 0.0
+    r0 = g.residuals(g.nominal)
+    cols = []
+    for j in (2, 0, 1):
+        p = g.nominal.copy()
+        p[j] += 1.0
+        cols.append(np.concatenate([b - a for a, b in zip(r0, g.residuals(p), strict=True)]))
+    X, y = np.stack(cols, axis=1), np.concatenate(r0)
+    ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
+    if np.count_nonzero(ok) < 10:
+        return 0.0
+    step = np.linalg.lstsq(X[ok], -y[ok], rcond=None)[0]
+    return float(np.clip(g.nominal[2] + step[0], -bound_s, bound_s))
 
 
 class FlowGroupState:
