@@ -229,9 +229,8 @@ class GyroProblem:
             self.dgyro = np.where(covered, (S[2:, b] - S[2:, a]) / dt, self.dgyro)
         self.r = self.gyro - self.rate
         self.dt_s = dt
-        #: per axis, the filter the group's rows go through (``gyro_whitener``; set by ``gyro_group``)
-        self.whiten: list[Callable[[np.ndarray], np.ndarray]] = [lambda r: r, lambda r: r]
-        self.noise: list[GyroNoise] = []
+        #: per axis, the filter the group's rows go through, and the noise model it is made from
+        self.whiten, self.noise = gyro_whitener(self)
         #: the lag the nominal model carries: the stamps' timing (``_gyro_stamp_alignment``)
         self.timing_offset_s = 0.0
 
@@ -453,8 +452,7 @@ def gyro_whitener(gp: GyroProblem) -> tuple[list[Callable[[np.ndarray], np.ndarr
 
 def gyro_group(data: FlightData) -> tuple[Group, GyroProblem]:
     gp = GyroProblem(data)
-    whiten, gp.noise = gyro_whitener(gp)
-    gp.whiten = whiten
+    whiten = gp.whiten
 
     def residuals(p: np.ndarray) -> list[np.ndarray]:
         r = gp.gyro + p[2] * gp.dgyro - gp.rate
