@@ -768,6 +768,35 @@ def test_the_flow_messages_body_rate_is_fitted_with_the_attitude_as_instrument(s
     assert abs(step("gain", True)) < 0.01
 
 
+def test_a_hovers_flow_body_rate_noise_is_not_listed_as_unexplained(tmp_path, monkeypatch):
+    """The unexplained terms of the flow channels have the same errors in variables as the effects:
+    a hover on the ArduPilot profile (the flow message's body rate is the autopilot's gyro over each
+    frame, 4 mrad/s of white noise; 2 mrad of attitude noise, so that body rate is the flow's rotation
+    source) regressed on a rotation from that same gyro listed both flow channels as a rotation
+    scale error of about -0.7 (the matrix's hovers: a rotation acceleration of +2.4e-4 to 3.3e-4 rad
+    per rad/s^2). With the terms' rotation from the fitted loop's attitude, nothing is listed."""
+    from companion.diagnose.closed_loop import diagnosis as dg
+    from simvehicle.engines import flightgen as fg
+
+    spec = fg.draw_spec(5, ardupilot_share=1.0)
+    flight = fg.FlightProfile((fg.SetpointSegment(0.0, 1e4, "step", (0.0, 0.0), (0.0, 0.0)),), (0.0, 1e4),
+                              (1.0, 1.0), 2.0)
+    spec = dataclasses.replace(spec, duration_s=60.0, warmup_s=2.0, flight=flight, effects={},
+                               noise=fg.Noise(gyro_white_rad_s=0.004, att_white_rad=0.002), loss=fg.Loss(),
+                               wind_from_start=False, wind_to_end=False)
+    fg.write_flight(spec, fg.simulate(spec), tmp_path, "hover")
+
+    def run():
+        return dg.diagnose(load_recording(tmp_path / "hover.tlog"), load_config(tmp_path / "hover.toml")).report
+
+    rep = run()
+    assert any(n.startswith("the flow's rotation from the flow message's own body rate") for n in rep.notes)
+    assert rep.significant() == [] and [u.channel for u in rep.unexplained if u.channel.startswith("flow")] == []
+    # the regressors' rotation from the gyro, as before: the shared noise is listed on both axes
+    monkeypatch.setattr(dg, "_flow_term_rotation", lambda data, fp, fstate, loop, grad: (fp.R, fp.Rdot))
+    assert sorted(u.channel for u in run().unexplained) == ["flow_x", "flow_y"]
+
+
 def _noisy_hover(att_noise_rad: float, gyro_noise_rad_s: float, seed: int, tau_s: float = 0.03,
                  lost: float = 0.0, amp_rad: float = 0.01, n_frames: int = 3000, spline: bool = False) -> FlightData:
     """``_smooth_loop`` (a hover's corrections of ``amp_rad`` rms, a gyro lagging by ``tau_s``) with

@@ -23,7 +23,7 @@ from companion.diagnose.closed_loop.attitude import AttitudeProblem
 from companion.diagnose.closed_loop.channels import FlightData, extract
 from companion.diagnose.closed_loop.excitation import LOOP_EFFECTS, LoopForm, loop_form
 from companion.diagnose.closed_loop.explain import explain
-from companion.diagnose.closed_loop.flowmodel import IDX, FlowProblem
+from companion.diagnose.closed_loop.flowmodel import AXIS_SIGN, IDX, FlowProblem
 from companion.diagnose.closed_loop.groups import (
     GEOMETRY_EFFECTS,
     IV_GAP_FRAMES,
@@ -222,8 +222,7 @@ def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp
         if c >= 2:
             return _force_terms(data, fp, res, c - 2, _loop_attitude(ap))
         i, o = c, 1 - c
-        R = fp.R
-        Rd = fp.Rdot
+        R, Rd = _flow_term_rotation(data, fp, fstate, _loop_attitude(ap), grad)
         Rdd = grad(Rd)
         # translation from the plant (never from the recorded flow, which holds the residual's noise)
         off = float(res.final.p[IDX["offset"]])
@@ -241,6 +240,34 @@ def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp
                ("rotation squared", "a non-linear flow response", "rad^2", R[i][W] ** 2)]
         return [Term(n, w, u, fstate.whiten[i](fp.project_windows(v)).ravel()) for n, w, u, v in raw]
     return []
+
+
+def _flow_term_rotation(data: FlightData, fp: FlowProblem, fstate: FlowGroupState, loop: np.ndarray | None,
+                        grad: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation (2, n frames, the flow's axes) and its rate that the flow channels' terms are
+    regressed on: the effects' regressors' (``fp.R``, the gyro's) when the residual's rotation is
+    the attitude estimate's; else the fitted loop's attitude (``loop``, ``_loop_attitude``; the
+    recorded attitude where it does not reach, or without a loop). Why: a residual whose rotation
+    is the gyro's, or the flow message's own body rate (the autopilot's gyro over each frame),
+    holds the gyro's noise, and regressed on a rotation from that same gyro the noise read as a
+    filter in the flow path: +2.4e-4 to 3.3e-4 rad per rad/s^2 of rotation acceleration on the
+    ArduPilot profile's hovers (8 recordings of the generalisation matrix, two of them clean), the
+    residual at its noise (errors in variables). The loop's attitude follows the rotation as the
+    gyro does (rate correlation 0.995 on gen_0186) without its noise. The cost: what the shared
+    noise added to a real term is gone too (gen_0186's missed 10 ms flow delay, once listed as
+    -0.0093 rad per rad/s of rotation rate, is listed no more)."""
+    if fstate.source == "attitude":
+        return fp.R, fp.Rdot
+    ang = [data.pitch_rad, data.roll_rad]
+    if loop is not None:
+        for i in (0, 1):
+            sim = loop[1 - i]  # [roll, pitch]
+            ang[i] = np.where(np.isfinite(sim), sim, ang[i])
+    R = np.zeros((2, data.n))
+    for a, b in data.segments():
+        for i in (0, 1):
+            R[i, a:b] = AXIS_SIGN[i] * (ang[i][a:b] - ang[i][a])
+    return R, grad(R)
 
 
 def _loop_attitude(ap: AttitudeProblem) -> np.ndarray | None:
