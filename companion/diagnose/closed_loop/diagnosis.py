@@ -250,9 +250,9 @@ def _flow_term_rotation(data: FlightData, fp: FlowProblem, fstate: FlowGroupStat
     recorded attitude where it does not reach, or without a loop). Why: a residual whose rotation
     is the gyro's, or the flow message's own body rate (the autopilot's gyro over each frame),
     holds the gyro's noise, and regressed on a rotation from that same gyro the noise read as a
-    filter in the flow path: +2.4e-4 to 3.3e-4 rad per rad/s^2 of rotation acceleration on the
-    ArduPilot profile's hovers (8 recordings of the generalisation matrix, two of them clean), the
-    residual at its noise (errors in variables). The loop's attitude follows the rotation as the
+    filter in the flow path: +2.4e-4 to 3.3e-4 rad per rad/s^2 of rotation acceleration on 8
+    ArduPilot-profile recordings of the generalisation matrix (two of them clean hovers, whose
+    residual was at its noise: errors in variables). The loop's attitude follows the rotation as the
     gyro does (rate correlation 0.995 on gen_0186) without its noise. The cost: what the shared
     noise added to a real term is gone too (gen_0186's missed 10 ms flow delay, once listed as
     -0.0093 rad per rad/s of rotation rate, is listed no more)."""
