@@ -165,8 +165,10 @@ def _cond_values(data: FlightData, fp: FlowProblem, p_flow: np.ndarray) -> dict[
 
 
 def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp: FlowProblem,
-           res: GroupResult, c: int, fstate: FlowGroupState) -> list[Term]:
-    """Candidate-term library for channel c of a group (rows aligned with its residual)."""
+           res: GroupResult, c: int, fstate: FlowGroupState, loop: np.ndarray | None) -> list[Term]:
+    """Candidate-term library for channel c of a group (rows aligned with its residual). ``loop``:
+    the fitted attitude loop's attitude for the recorded commands (``_loop_attitude``), simulated
+    once for every channel."""
     t = data.t_s
     segs = data.segments()
 
@@ -203,7 +205,6 @@ def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp
         # (rows the simulation does not reach, e.g. between the attitude fit's segments after lost
         # commands, take the gyro's own mean rate: its noise is not the attitude's either)
         r = gp.gyro.copy()
-        loop = _loop_attitude(ap)
         if loop is not None:
             sim = (loop[:, gp.k] - loop[:, gp.k_prev]) / (t[gp.k] - t[gp.k_prev])
             ok = np.isfinite(sim)
@@ -220,9 +221,9 @@ def _terms(name: str, data: FlightData, ap: AttitudeProblem, gp: GyroProblem, fp
     if name == "flow":
         W = fp.flow.idx
         if c >= 2:
-            return _force_terms(data, fp, res, c - 2, _loop_attitude(ap))
+            return _force_terms(data, fp, res, c - 2, loop)
         i, o = c, 1 - c
-        R, Rd = _flow_term_rotation(data, fp, fstate, _loop_attitude(ap), grad)
+        R, Rd = _flow_term_rotation(data, fp, fstate, loop, grad)
         Rdd = grad(Rd)
         # translation from the plant (never from the recorded flow, which holds the residual's noise)
         off = float(res.final.p[IDX["offset"]])
@@ -258,16 +259,21 @@ def _flow_term_rotation(data: FlightData, fp: FlowProblem, fstate: FlowGroupStat
     -0.0093 rad per rad/s of rotation rate, is listed no more)."""
     if fstate.source == "attitude":
         return fp.R, fp.Rdot
-    ang = [data.pitch_rad, data.roll_rad]
-    if loop is not None:
-        for i in (0, 1):
-            sim = loop[1 - i]  # [roll, pitch]
-            ang[i] = np.where(np.isfinite(sim), sim, ang[i])
+    ang = _loop_or_recorded(data, loop)
     R = np.zeros((2, data.n))
     for a, b in data.segments():
         for i in (0, 1):
             R[i, a:b] = AXIS_SIGN[i] * (ang[i][a:b] - ang[i][a])
     return R, grad(R)
+
+
+def _loop_or_recorded(data: FlightData, loop: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(pitch, roll): the fitted loop's attitude (``loop``, [roll, pitch], ``_loop_attitude``), the
+    recorded attitude where its simulation does not reach or without a loop."""
+    rec = (data.pitch_rad, data.roll_rad)
+    if loop is None:
+        return rec
+    return (np.where(np.isfinite(loop[1]), loop[1], rec[0]), np.where(np.isfinite(loop[0]), loop[0], rec[1]))
 
 
 def _loop_attitude(ap: AttitudeProblem) -> np.ndarray | None:
@@ -306,11 +312,7 @@ def _force_terms(data: FlightData, fp: FlowProblem, res: GroupResult, i: int,
         if b - a > 1:
             v[:, a:b] = np.gradient(X[:, a:b], t[a:b], axis=1)
     o = 1 - i
-    ang = (data.pitch_rad, data.roll_rad)
-    tilt = ang[i]
-    if loop is not None:
-        sim = loop[1 - i]  # [roll, pitch]
-        tilt = np.where(np.isfinite(sim), sim, tilt)
+    tilt = _loop_or_recorded(data, loop)[i]
     climb = np.zeros(data.n)
     for a, b in data.segments():
         if b - a > 1:
@@ -585,6 +587,7 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
     report.notes.append(f"profile {data.profile} ({data.profile_reason}); command: {data.command_source}; "
                         f"{whole[0]} frames over {whole[1]:.1f} s in {whole[2]} segment(s)")
     cond = _cond_values(data, fp, results["flow"].final.p)
+    loop = _loop_attitude(ap)  # the unexplained terms' attitude, for every channel
     for name, res in results.items():
         g = res.group
         for c, ch in enumerate(g.channels):
@@ -608,7 +611,7 @@ def diagnose(rec: Recording, cfg: Config, *, profile: str | None = None,
                                       f"explains what it explains; a flight with more manoeuvring (speed and "
                                       f"height changes) would tell them apart.")
             report.findings.append(f)
-        _unexplained(name, res, data, ap, gp, fp, fstate, settings, report)
+        _unexplained(name, res, data, ap, gp, fp, fstate, settings, report, loop)
         report.notes.extend(res.selector.notes)
     if held is not None and held.n:
         try:
@@ -754,7 +757,8 @@ def _stretch_factor(res: GroupResult, c: int) -> float:
 
 
 def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProblem, gp: GyroProblem,
-                 fp: FlowProblem, fstate: FlowGroupState, settings: Settings, report: Report) -> None:
+                 fp: FlowProblem, fstate: FlowGroupState, settings: Settings, report: Report,
+                 loop: np.ndarray | None) -> None:
     g = res.group
     sel = res.selector
     for c, ch in enumerate(g.channels):
@@ -762,7 +766,7 @@ def _unexplained(name: str, res: GroupResult, data: FlightData, ap: AttitudeProb
         tt = g.row_times[c]
         if len(r) == 0:
             continue
-        terms = _terms(name, data, ap, gp, fp, res, c, fstate)
+        terms = _terms(name, data, ap, gp, fp, res, c, fstate, loop)
         sp = sparse_fit(r, terms, sel.folds[c], sel.K) if terms else None
         if sp is not None:
             res.sparse[ch] = sp
