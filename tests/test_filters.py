@@ -168,3 +168,16 @@ def test_filtfilt_segments_is_filtfilt_per_stretch(path, k):
                                       filters.filtfilt_segments(b, a, x2, bounds[:, 0], bounds[:, 1]))
     with pytest.raises(ValueError, match="longer than"):
         filters.filtfilt_segments(b, a, x, np.array([0]), np.array([pad]))
+
+
+def test_running_count_counts_the_true_values_of_any_span():
+    """c[b] - c[a] is the number of True in mask[a:b], checked against a direct count over every
+    span of a random mask (and the empty mask's single zero)."""
+    rng = np.random.default_rng(3)
+    mask = rng.random(40) < 0.3
+    c = filters.running_count(mask)
+    assert c.shape == (41,) and c.dtype == np.int64
+    for a in range(41):
+        for b in range(a, 41):
+            assert c[b] - c[a] == int(np.count_nonzero(mask[a:b]))
+    assert filters.running_count(np.zeros(0, dtype=bool)).tolist() == [0]

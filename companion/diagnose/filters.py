@@ -5,6 +5,8 @@ of the whole ``diagnose`` command on an hour-long recording and more than its ow
 one. The diagnosis needs only a second-order Butterworth low-pass, ``lfilter``/``lfiltic`` of
 second-order sections and ``filtfilt``: they are written here with ``scipy.signal``'s rules and
 defaults, and ``tests/test_filters.py`` holds each equal to ``scipy.signal``'s, option by option.
+``running_count``, a running sum over a mask, is here too: every window test of "no lost frame
+in it" uses it.
 
 The recursion of ``lfilter`` (a loop over samples) runs in the compiled kernels
 (``companion.native``, ``fh_lfilter2``: scipy's direct form II transposed, term for term); without
@@ -20,6 +22,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion import native
+
+
+def running_count(mask: np.ndarray) -> np.ndarray:
+    """c (len(mask) + 1,) with c[k] the number of True among mask[:k]: c[b] - c[a] counts them in
+    mask[a:b], for any number of spans at once (``c[b] - c[a] == 0``: none of a window's frames
+    is lost, invalid, a break). A running sum, the simplest of filters."""
+    return np.concatenate([[0], np.cumsum(mask, dtype=np.int64)])
 
 
 def butter2_lowpass(wn: float) -> tuple[np.ndarray, np.ndarray]:

@@ -30,6 +30,16 @@ from companion.diagnose import filters
 from companion.diagnose.closed_loop.channels import FlightData
 from companion.diagnose.closed_loop.select import robust_std
 
+#: the attitude loop's natural frequency at most (rad/s): at 50 Hz frames a loop this fast follows
+#: a command within about a frame (rise time 1.8 / omega_p = 22 ms), and every faster one looks
+#: the same; a fit there (``Candidate.resolution_upper``) says the recorded command is followed
+#: as fast as the frames show, as an autopilot's own attitude target (after its input shaping) is
+OMEGA_P_MAX_RAD_S = 80.0
+#: ``OMEGA_P_MAX_RAD_S`` x the frame period at least this much (the rise time ~1.8 / omega_p within
+#: about a frame) makes that bound the frames' resolution rather than a limit of the model
+OMEGA_P_RESOLVED_T = 1.2
+
+
 #: a run of lost (bridged) commands restarts the attitude simulation from the recorded attitude
 #: when this flight says a restart carries less error than simulating on across the bridge
 #: (``restart_choice``), and always when the command jumps across it by more than
@@ -204,7 +214,7 @@ def restart_choice(data: FlightData, omega_p: float, zeta: float) -> RestartChoi
     t = data.t_s
     ok = data.cmd_rec & np.all(np.isfinite(u), axis=0)
     ok_pair = np.concatenate([[False], ok[1:] & ok[:-1] & same])  # frames k - 1 and k recorded, one segment
-    bad = np.concatenate([[0], np.cumsum(~ok_pair)])
+    bad = filters.running_count(~ok_pair)
     k0, k1 = _runs(~data.cmd_rec)
     bridged = []
     for m in np.unique(k1 - k0).tolist():  # the lengths of this flight's runs of lost commands

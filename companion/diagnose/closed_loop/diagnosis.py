@@ -663,7 +663,7 @@ def _finding(effect: str, comp: Comparison, res: GroupResult, data: FlightData, 
         "group": g.name,
         "channel": ch,
         "unit": g.units[c],
-        "wald_z": comp.z,
+        "wald_z": comp.wald_z,
         "cv_t": comp.cv_t,
         "delta_bic": comp.dbic,
         "heldout_by_channel": {g.channels[i]: {"before": float(comp.heldout_rms_before[i]),
@@ -672,6 +672,8 @@ def _finding(effect: str, comp: Comparison, res: GroupResult, data: FlightData, 
         "method": "exact refit" if effect in res.chosen or "exact" in " ".join(comp.reasons)
         else "linearised at the chosen model",
     }
+    if comp.at_resolution_bound:  # judged by its held-out z in place of the Wald z (``Candidate.resolution_upper``)
+        evidence["at_resolution_bound"] = True
     if comp.reasons:
         evidence["why_not"] = comp.reasons
     if comp.significant:

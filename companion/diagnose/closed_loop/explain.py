@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 from companion.config import Config
+from companion.diagnose.closed_loop.attitude import OMEGA_P_MAX_RAD_S
 
 
 def explain(effect: str, p: dict[str, float], cfg: Config, significant: bool, sd: dict[str, float]) -> str:
@@ -44,6 +45,13 @@ def explain(effect: str, p: dict[str, float], cfg: Config, significant: bool, sd
                 f"averaged over the frame), so rotation leaks into the flow velocity.")
     if effect == "attitude_dynamics":
         w, z = p["omega_p"], p["zeta"]
+        if w >= OMEGA_P_MAX_RAD_S * (1.0 - 1e-6):
+            return (f"The attitude follows the recorded command within about a frame: Omega_p at least "
+                    f"{OMEGA_P_MAX_RAD_S:g} rad/s, the fastest these frames resolve (zeta {z:.2f}), against "
+                    f"the model's {a.omega_p_rad_s:g} rad/s. Eq. 26 describes the loop from a companion's command; "
+                    f"a command followed this fast is more likely the autopilot's own attitude target after its "
+                    f"input shaping (ArduPilot's ATTITUDE_TARGET, PX4's attitude setpoint), whose shaping the "
+                    f"recording does not show.")
         speed = "faster" if w > a.omega_p_rad_s else "slower"
         damp = "better damped" if z > a.zeta else "less damped"
         return (f"The attitude loop answers a command like a second-order system with Omega_p = {w:.2f} rad/s and "

@@ -42,6 +42,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from companion import native
+from companion.diagnose import filters
 from companion.diagnose.closed_loop.channels import FlightData
 
 AXIS_SIGN = (-1.0, 1.0)
@@ -309,7 +310,7 @@ class FlowProblem:
             fwin = fwin[np.unique(np.linspace(0, len(fwin) - 1, max_flow_windows).round().astype(int))]
         fw = np.concatenate(force_w) if force_w else np.zeros((0, 2), int)
         if len(fw) and np.any(long_gap):
-            cg = np.concatenate([[0], np.cumsum(long_gap)])
+            cg = filters.running_count(long_gap)
             fw = fw[cg[fw[:, 1] + self.h + 1] - cg[fw[:, 0] - self.h] == 0]
         self.force = Windows(fw, t[fw[:, 0]] if len(fw) else np.zeros(0), t[fw[:, 1]] if len(fw) else np.zeros(0))
         # projector removing a cubic in time from each flow window (same for every window)

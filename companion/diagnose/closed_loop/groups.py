@@ -24,7 +24,12 @@ from scipy.linalg import cholesky_banded, solve_banded
 
 from companion.config import Config
 from companion.diagnose import filters
-from companion.diagnose.closed_loop.attitude import AttitudeProblem, restart_choice
+from companion.diagnose.closed_loop.attitude import (
+    OMEGA_P_MAX_RAD_S,
+    OMEGA_P_RESOLVED_T,
+    AttitudeProblem,
+    restart_choice,
+)
 from companion.diagnose.closed_loop.channels import FlightData
 from companion.diagnose.closed_loop.flowmodel import AXIS_SIGN, IDX, NOMINAL, PARAMS, FlowProblem
 from companion.diagnose.closed_loop.select import Candidate, Group, block_meat, robust_std
@@ -157,11 +162,12 @@ def attitude_group(data: FlightData, cfg: Config) -> tuple[Group, AttitudeProble
         name="attitude", params=("omega_p", "zeta", "delay"), nominal=np.array([wp, z, 0.0]),
         timing=("delay", timing_sigma_s(data, "flow", "attitude")),
         steps=np.array([0.005 * wp, 0.005, 0.0005]), lower=np.array([0.3, 0.05, -T]),
-        upper=np.array([80.0, 5.0, ATTITUDE_DELAY_MAX_S]), channels=("attitude_roll", "attitude_pitch"),
+        upper=np.array([OMEGA_P_MAX_RAD_S, 5.0, ATTITUDE_DELAY_MAX_S]), channels=("attitude_roll", "attitude_pitch"),
         units=("rad", "rad"),
         floors=(1e-4, 1e-4), residuals=residuals, row_times=[tr, tr], coloured=(True, True),
         candidates=[Candidate("attitude_dynamics", ("omega_p", "zeta"),
-                              matters=threshold("attitude_dynamics", {"omega_p": wp, "zeta": z})),
+                              matters=threshold("attitude_dynamics", {"omega_p": wp, "zeta": z}),
+                              resolution_upper=("omega_p",) if OMEGA_P_MAX_RAD_S * T >= OMEGA_P_RESOLVED_T else ()),
                     Candidate("attitude_delay", ("delay",), matters=threshold("attitude_delay"))] if assessed else [])
     return g, ap
 
@@ -189,7 +195,7 @@ class GyroProblem:
         if np.mean(data.gyro_rec) >= 0.75:  # a gyro at the frame rate: its lost samples are not guessed at,
             # at the interval's ends or within it (a bridged sample's error, 0.12 rad/s over a 3-frame
             # interval of --seed 1 gen_0169 against a 0.01 rad/s noise, is no noise of the model's)
-            lost = np.concatenate([[0], np.cumsum(~data.gyro_rec)])
+            lost = filters.running_count(~data.gyro_rec)
             ok &= lost[b + 1] == lost[a]
         a, b = a[ok], b[ok]
         self.k = b
@@ -223,7 +229,7 @@ class GyroProblem:
         spl = [data.gyro_angle_x_rad, data.gyro_angle_y_rad, data.gyro_fine_x_rad_s, data.gyro_fine_y_rad_s]
         if all(s is not None for s in spl) and np.mean(data.gyro_rec) >= 0.75:
             S = np.stack(spl)  # type: ignore[arg-type]
-            gap = np.concatenate([[0], np.cumsum(~np.all(np.isfinite(S), axis=0))])
+            gap = filters.running_count(~np.all(np.isfinite(S), axis=0))
             covered = gap[b + 1] - gap[a] == 0  # frames a..b all on one run of the spline
             self.gyro = np.where(covered, (S[:2, b] - S[:2, a]) / dt, self.gyro)
             self.dgyro = np.where(covered, (S[2:, b] - S[2:, a]) / dt, self.dgyro)
@@ -409,12 +415,12 @@ def gyro_whitener(gp: GyroProblem) -> tuple[list[Callable[[np.ndarray], np.ndarr
     ref = float(np.median(dt))
     # the residual's angle over K intervals in a row: K spans GYRO_NOISE_SPAN_S (at least 2)
     K = max(2, int(round(GYRO_NOISE_SPAN_S / ref)))
-    brk = np.concatenate([[0], np.cumsum(~adj)])  # breaks before each row
+    brk = filters.running_count(~adj)  # breaks before each row
     for i in (0, 1):
         e = (gp.gyro[i] - gp.rate[i]) * dt  # the nominal residual in angle units (rad per interval)
         fin = np.isfinite(e)
         Y = np.concatenate([[0.0], np.cumsum(np.where(fin, e, 0.0))])  # Y[j]: the sum of rows before j
-        bad = np.concatenate([[0], np.cumsum(~fin)])
+        bad = filters.running_count(~fin)
         j = np.arange(n - K + 1)
         whole = (brk[j + K - 1] == brk[j]) & (bad[j + K] == bad[j])  # K adjacent finite rows from j
         one = fin & (np.abs(dt - ref) < 0.25 * ref)
@@ -754,7 +760,7 @@ def rebridge_gyro_gaps(data: FlightData, G: np.ndarray, y: np.ndarray, att: np.n
     fin = np.isfinite(G) & np.isfinite(y)
     ok = rec_g[1:] & rec_g[:-1] & same & fin[1:] & fin[:-1]
     runs = np.array(_runs(~rec_g, 1), dtype=np.int64).reshape(-1, 2)  # runs of lost samples
-    bad = np.concatenate([[0], np.cumsum(~ok)])  # intervals not measured among the first k
+    bad = filters.running_count(~ok)  # intervals not measured among the first k
 
     def span_ok(i: np.ndarray, j: np.ndarray) -> np.ndarray:  # intervals i..j-1 all measured
         return bad[j] - bad[i] == 0
@@ -1083,17 +1089,21 @@ def ar_whitener(e: np.ndarray, order: int = WHITEN_ORDER) -> Callable[[np.ndarra
     return apply
 
 
+def _scale_or_inf(x: np.ndarray) -> float:
+    """``robust_std`` of x's finite values; inf when there are none (a source that leaves a
+    channel nothing to fit scores worst, never best)."""
+    x = x[np.isfinite(x)]
+    return robust_std(x) if x.size else math.inf
+
+
 def _force_noise(fp: FlowProblem) -> float:
     """Robust scale of the nominal force-balance residual (both axes), N."""
-    x = fp.force_residual(NOMINAL).ravel()
-    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else math.inf
+    return _scale_or_inf(fp.force_residual(NOMINAL).ravel())
 
 
 def _flow_noise(fp: FlowProblem) -> float:
     """Robust scale of the nominal flow-geometry residual (both axes), rad."""
-    e = fp.flow_residual(NOMINAL)
-    x = e.ravel()
-    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else math.inf
+    return _scale_or_inf(fp.flow_residual(NOMINAL).ravel())
 
 
 #: the attitude estimate is the flow's rotation source only when it explains the flow better than

@@ -253,7 +253,9 @@ def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
             lines.append(f"- held-out residual of `{ev.get('channel')}`: {fit.heldout_rms_before:.4g} → "
                          f"{fit.heldout_rms_after:.4g} {ev.get('unit', '')} ({fit.improvement_pct:.1f} % lower)")
         lines.append(f"- evidence: Wald z = {ev.get('wald_z', math.nan):.1f}, paired held-out t = "
-                     f"{ev.get('cv_t', math.nan):.1f}, ΔBIC = {ev.get('delta_bic', math.nan):+.0f}")
+                     f"{ev.get('cv_t', math.nan):.1f}, ΔBIC = {ev.get('delta_bic', math.nan):+.0f}"
+                     + (" (at the fastest the frames resolve: judged by its held-out z, the Wald z has no "
+                        "meaning at that bound)" if ev.get("at_resolution_bound") else ""))
         if f.where:
             lines.append("- where it acts: " + "; ".join(f"{w.channel} {w.start_s:.1f}–{w.end_s:.1f} s"
                                                          for w in f.where))

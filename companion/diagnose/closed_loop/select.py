@@ -64,6 +64,12 @@ class Candidate:
     #: optional: why fitted values are too small to matter physically (``companion.diagnose.closed_loop.sizes``),
     #: or None when they matter
     matters: Callable[[dict[str, float]], str | None] | None = None
+    #: parameters whose upper bound is the fastest the recording's frames resolve (a loop's natural
+    #: frequency): a fit there says "at least this fast", not that something else is at work, and
+    #: its Wald z (a quadratic approximation that the bound cuts off, and that measures a fast loop
+    #: on a scale, rad/s, where every loop faster than the frames looks the same) gives way to the
+    #: exact held-out z, which must then reach ``Settings.z_min`` (``Selector.compare``)
+    resolution_upper: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -210,7 +216,7 @@ class Comparison:
     effect: str
     with_: ModelScore
     without: ModelScore
-    z: float  # Wald statistic as an equivalent normal z
+    z: float  # Wald statistic as an equivalent normal z (at a resolution bound: the held-out z)
     cv_t: float  # paired t of the per-fold held-out improvement
     dbic: float  # BIC(with) - BIC(without)
     heldout_rms_before: np.ndarray  # (C,) per channel
@@ -220,6 +226,10 @@ class Comparison:
     reasons: list[str] = field(default_factory=list)
     #: searched effects: tail probability of the search statistic under the calibrated null
     null_p: float = math.nan
+    #: the Wald z as computed (``z`` is the held-out z where a parameter sits at a resolution bound,
+    #: ``Candidate.resolution_upper``)
+    wald_z: float = math.nan
+    at_resolution_bound: bool = False
 
     @property
     def improvement_pct(self) -> float:
@@ -852,9 +862,10 @@ class Selector:
                 else math.inf
         except np.linalg.LinAlgError:
             w = math.inf
-        z = z_of_chi2(w, len(idx))
+        z = z_wald = z_of_chi2(w, len(idx))
         exact = with_.heldout_rows is not None and without.heldout_rows is not None
         localised = self.g.searched_effect in effects and self.g.null_pvalue is not None
+        resolved = self._at_resolution_edge(cands, with_.p)
         z_ho, n_ho = 0.0, 0
         if exact:  # per time block: an effect that acts in some blocks only is not diluted by folds
             assert with_.heldout_rows is not None and without.heldout_rows is not None
@@ -893,6 +904,8 @@ class Selector:
             # the held-out gain against the noise's own variance (``heldout_z``), over the blocks
             cv_t, n_blocks = z_ho, n_ho
             diff = np.zeros(n_blocks)
+            if resolved:  # the Wald z has no meaning at the bound (``Candidate.resolution_upper``)
+                z = cv_t
         n_per_c = self.cnt.sum(axis=0)
         before = np.sqrt(without.heldout_ss / np.maximum(n_per_c, 1))
         after = np.sqrt(with_.heldout_ss / np.maximum(n_per_c, 1))
@@ -910,7 +923,7 @@ class Selector:
         # the primary channel is one the effect acts on (a localised effect: where its window is)
         primary = int(np.argmax(np.where(acts, rel, -np.inf)))
         comp = Comparison("+".join(effects), with_, without, z, cv_t, with_.bic() - without.bic(), before, after,
-                          primary, null_p=null_p)
+                          primary, null_p=null_p, wald_z=z_wald, at_resolution_bound=resolved)
         reasons = []
         if localised and not null_p <= self.s.null_p_max:
             reasons.append(f"a window this strong is found in this recording's own noise too "
@@ -927,14 +940,18 @@ class Selector:
             over = "time blocks where it acts" if exact else "folds"
             reasons.append(f"held-out improvement not consistent over {over} (t = {cv_t:.1f} < {t_need:g})")
         if not z >= z_need:
-            reasons.append(f"parameters within {z_need:g} sigma of the nominal model (z = {z:.1f})")
+            if resolved and exact and not localised:
+                reasons.append(f"at the fastest the frames resolve, its held-out z ({z:.1f}) is under {z_need:g}")
+            else:
+                reasons.append(f"parameters within {z_need:g} sigma of the nominal model (z = {z:.1f})")
         if not comp.dbic < 0:
             reasons.append(f"the information criterion does not prefer it (dBIC = {comp.dbic:+.1f})")
         for cand in cands:
             ci = self.g.index(cand.params)
             span = self.g.upper[ci] - self.g.lower[ci]
+            open_top = np.array([n in cand.resolution_upper for n in cand.params])
             at_bound = (np.abs(with_.p[ci] - self.g.lower[ci]) <= 1e-6 * span) \
-                | (np.abs(with_.p[ci] - self.g.upper[ci]) <= 1e-6 * span)
+                | ((np.abs(with_.p[ci] - self.g.upper[ci]) <= 1e-6 * span) & ~open_top)
             if np.any(at_bound):
                 reasons.append("the fit ran to the edge of the allowed range: the data ask for more than this "
                                "effect can be, so something else is at work")
@@ -953,6 +970,15 @@ class Selector:
         comp.reasons = reasons
         comp.significant = not reasons
         return comp
+
+    def _at_resolution_edge(self, cands: Sequence[Candidate], p: np.ndarray) -> bool:
+        """Whether p holds one of ``cands``' ``resolution_upper`` parameters at its upper bound."""
+        for cand in cands:
+            for name in cand.resolution_upper:
+                i = self.g.params.index(name)
+                if abs(p[i] - self.g.upper[i]) <= 1e-6 * (self.g.upper[i] - self.g.lower[i]):
+                    return True
+        return False
 
     def _block_gain(self, with_: ModelScore, without: ModelScore,
                     active: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
