@@ -56,7 +56,7 @@ REBOOT_BACKSTEP_S = 1.0
 CUBIC = True
 _FLAGS = ("flow_rec", "att_rec", "gyro_rec", "cmd_rec")
 _OPTIONAL = ("flow_body_x_rad_s", "flow_body_y_rad_s", "gyro_angle_x_rad", "gyro_angle_y_rad", "gyro_fine_x_rad_s",
-             "gyro_fine_y_rad_s", "accel_x_m_s2", "accel_y_m_s2")
+             "gyro_fine_y_rad_s", "accel_x_m_s2", "accel_y_m_s2", "accel_z_m_s2")
 _ARRAYS = ("t_s", "dt_s", "seg", "dphi_x_rad", "dphi_y_rad", "gyro_x_rad_s", "gyro_y_rad_s", "range_m", "roll_rad",
            "pitch_rad", "yaw_rad", "roll_cmd_rad", "pitch_cmd_rad", "vx_set_m_s", "vy_set_m_s", "truth_vx_m_s",
            "truth_vy_m_s")
@@ -119,10 +119,11 @@ class FlightData:
     gyro_angle_y_rad: np.ndarray | None = None
     gyro_fine_x_rad_s: np.ndarray | None = None
     gyro_fine_y_rad_s: np.ndarray | None = None
-    #: the accelerometer's body x and y specific force (m/s^2, FRD) at the frames, from the gyro's
-    #: message (RAW_IMU xacc, yacc); None when it has none
+    #: the accelerometer's body x, y and z specific force (m/s^2, FRD) at the frames, from the gyro's
+    #: message (RAW_IMU xacc, yacc, zacc); None when it has none
     accel_x_m_s2: np.ndarray | None = None
     accel_y_m_s2: np.ndarray | None = None
+    accel_z_m_s2: np.ndarray | None = None
     att_rec: np.ndarray = None  # type: ignore[assignment]
     gyro_rec: np.ndarray = None  # type: ignore[assignment]
     cmd_rec: np.ndarray = None  # type: ignore[assignment]
@@ -580,11 +581,12 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
     gang_x, gfine_x = (np.where(unknown, np.nan, v) for v in gyro_spline(tb, gt, gx, bridge))
     gang_y, gfine_y = (np.where(unknown, np.nan, v) for v in gyro_spline(tb, gt, gy, bridge))
     accel = gyro.accel_m_s2
-    acc_x = acc_y = None
+    acc_x = acc_y = acc_z = None
     if accel is not None:
-        acc_t, acc_xs, acc_ys = _sorted_unique(gyro.time_s, accel[:, 0], accel[:, 1])
+        acc_t, acc_xs, acc_ys, acc_zs = _sorted_unique(gyro.time_s, accel[:, 0], accel[:, 1], accel[:, 2])
         acc_x = _interp_gapped(tb, acc_t, acc_xs, bridge)
         acc_y = _interp_gapped(tb, acc_t, acc_ys, bridge)
+        acc_z = _interp_gapped(tb, acc_t, acc_zs, bridge)
 
     # range (downward only; outside the sensor's own limits is invalid)
     ds = downward_range(rec, sysid)
@@ -665,4 +667,5 @@ def _extract_session(rec: Recording, t0: float, cfg: Config, prof: Profile, reas
         flow_rec=flow_rec, att_rec=att_rec, gyro_rec=gyro_rec, cmd_rec=cmd_rec,
         stamp_step_s={"flow": stamp_step_s(tr), "attitude": stamp_step_s(att_t), "gyro": stamp_step_s(gt)},
         flow_body_x_rad_s=body_x, flow_body_y_rad_s=body_y, gyro_angle_x_rad=gang_x, gyro_angle_y_rad=gang_y,
-        gyro_fine_x_rad_s=gfine_x, gyro_fine_y_rad_s=gfine_y, accel_x_m_s2=acc_x, accel_y_m_s2=acc_y)
+        gyro_fine_x_rad_s=gfine_x, gyro_fine_y_rad_s=gfine_y, accel_x_m_s2=acc_x, accel_y_m_s2=acc_y,
+        accel_z_m_s2=acc_z)

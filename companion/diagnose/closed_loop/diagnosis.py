@@ -672,6 +672,9 @@ def _finding(effect: str, comp: Comparison, res: GroupResult, data: FlightData, 
         "method": "exact refit" if effect in res.chosen or "exact" in " ".join(comp.reasons)
         else "linearised at the chosen model",
     }
+    if comp.check_rows:  # the accelerometer's independent verdict (``groups.accelerometer_z``)
+        evidence["accelerometer_z"] = comp.check_z
+        evidence["accelerometer_rows"] = comp.check_rows
     if comp.at_resolution_bound:  # judged by its held-out z in place of the Wald z (``Candidate.resolution_upper``)
         evidence["at_resolution_bound"] = True
     if comp.reasons:

@@ -44,6 +44,7 @@ from scipy.interpolate import CubicSpline
 from companion import native
 from companion.diagnose import filters
 from companion.diagnose.closed_loop.channels import FlightData
+from companion.diagnose.closed_loop.select import robust_std
 
 AXIS_SIGN = (-1.0, 1.0)
 #: parameter vector of the translational model (CONVENTIONS.md names)
@@ -60,6 +61,14 @@ START_VELOCITY_MIN_SHARE = 1e-9
 #: than ``BRIDGED_RUN_MAX`` frames, are left out of the flow and force channels
 BRIDGED_SHARE_MAX = 0.25
 BRIDGED_RUN_MAX = 3
+
+
+#: the inertial channels (``FlowProblem.inertial_residual``) take an accelerometer bias of their own
+#: per block of this long within a segment (s): a bias drifts with temperature over a long flight
+INERTIAL_BIAS_BLOCK_S = 60.0
+#: the inertial channels' rows are the windows whose mean acceleration (the accelerometer's) is at
+#: least this many times the channels' noise on either axis (``FlowProblem.inertial_residual``)
+INERTIAL_ACTIVE_TIMES_NOISE = 10.0
 
 
 def _long_runs(missing: np.ndarray, max_len: int) -> np.ndarray:
@@ -104,6 +113,19 @@ def accel_bias_removed(v_acc: np.ndarray, v_tilt: np.ndarray, x_flow: np.ndarray
         return v_acc
     coef, *_ = np.linalg.lstsq(basis[ok], d[ok], rcond=None)
     return v_acc - coef[2] * tau
+
+
+def level_acceleration(fx: np.ndarray, fy: np.ndarray, fz: np.ndarray, pitch_rad: np.ndarray,
+                       roll_rad: np.ndarray) -> np.ndarray:
+    """(2, n) the horizontal acceleration (m/s^2) along the flow's axes (x forward, y right, level,
+    the heading's) that the body FRD specific force (fx, fy, fz) gives at (pitch, roll): R f + g
+    with R = Ry(pitch) Rx(roll), whose horizontal rows do not hold gravity. A hover's
+    f = (0, 0, -g / (cos pitch cos roll)) gives (-g tan pitch, g tan roll / cos pitch): the paper's
+    s g tan(angle) (``AXIS_SIGN``) to second order in the other angle, with the thrust as measured
+    (a vehicle that sinks while it tilts accelerates less than g tan: ArduCopter SITL)."""
+    cp, sp = np.cos(pitch_rad), np.sin(pitch_rad)
+    cr, sr = np.cos(roll_rad), np.sin(roll_rad)
+    return np.stack([cp * fx + sp * sr * fy + sp * cr * fz, cr * fy - sr * fz])
 
 
 def ramp_integral(t: np.ndarray, start_s: float | np.ndarray, end_s: float | np.ndarray) -> np.ndarray:
@@ -358,6 +380,85 @@ class FlowProblem:
         #: constant residual offsets set by ``anchor`` (None: this problem's own nominal residual)
         self._flow_offset: np.ndarray | None = None
         self._force_offset: np.ndarray | None = None
+        #: the inertial channels' constants (``_set_inertial``, made on first use)
+        self._inertial: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def _inertial_constants(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The inertial channels' constants (``inertial_residual``), made on first use: the force
+        windows whose frames, boundary averages included, all have an accelerometer reading
+        (indices into ``force.idx``); per such window the velocity change the accelerometer gives
+        (m/s, (2, n)): its specific force (body FRD) turned level by the recorded attitude, a
+        strapdown integration that needs no model of the thrust (``level_acceleration``); the
+        blocks of at most ``INERTIAL_BIAS_BLOCK_S`` within a segment that each take a bias of
+        their own; and which of the windows are the rows (``INERTIAL_ACTIVE_TIMES_NOISE``). Empty
+        without an accelerometer, or with the (0, 0, -1 g) placeholder a vehicle without one sends."""
+        if self._inertial is not None:
+            return self._inertial
+        empty = (np.zeros(0, dtype=int), np.zeros((2, 0)), np.zeros(0, dtype=int), np.zeros(0, dtype=bool))
+        self._inertial = empty
+        data = self.data
+        fx, fy, fz = data.accel_x_m_s2, data.accel_y_m_s2, data.accel_z_m_s2
+        F = self.force.idx
+        if fx is None or fy is None or fz is None or len(F) == 0:
+            return empty
+        with np.errstate(invalid="ignore"):
+            if not np.any((fx != 0.0) | (fy != 0.0)):  # the placeholder, or nothing finite
+                return empty
+        acc = level_acceleration(fx, fy, fz, data.pitch_rad, data.roll_rad)
+        cb = filters.running_count(~np.all(np.isfinite(acc), axis=0))
+        h = self.h
+        valid = np.flatnonzero(cb[F[:, 1] + h + 1] - cb[F[:, 0] - h] == 0)
+        if len(valid) == 0:
+            return empty
+        dv = self._window_means(self._cum(self._cum(np.nan_to_num(acc))))[:, valid]
+        seg = np.searchsorted([b for _a, b in data.segments()], F[valid, 0], side="right")
+        t0 = self.t[F[valid, 0]]
+        first = {k: float(t0[seg == k].min()) for k in np.unique(seg)}
+        block = np.floor((t0 - np.array([first[k] for k in seg])) / INERTIAL_BIAS_BLOCK_S).astype(int)
+        blocks = np.unique(np.stack([seg, block], axis=1), axis=0, return_inverse=True)[1].ravel()
+        self._inertial = (valid, dv, blocks, np.ones(len(valid), dtype=bool))
+        # the rows: windows whose acceleration stands clear of the channels' noise (the nominal
+        # residual's robust scale, per axis): in a hover the motion is largely the loop's answer
+        # to the flow's own noise, which the residual holds too
+        e = self.inertial_residual(NOMINAL)
+        noise = np.array([robust_std(x) for x in e])
+        a = np.abs(dv) / self._span[valid]
+        self._inertial = (valid, dv, blocks, np.any(a >= INERTIAL_ACTIVE_TIMES_NOISE * noise[:, None], axis=0))
+        return self._inertial
+
+    @property
+    def inertial_rows(self) -> np.ndarray:
+        """The force windows (indices into ``force.idx``) that are the inertial channels' rows."""
+        valid, _dv, _blocks, active = self._inertial_constants()
+        return valid[active]
+
+    def inertial_residual(self, p: np.ndarray) -> np.ndarray:
+        """``inertial_x``, ``inertial_y`` (m/s^2), shape (2, n_rows): over each force window with an
+        accelerometer reading throughout whose acceleration stands clear of the noise
+        (``inertial_rows``), the mean acceleration of the flow's odometry under p's sensor geometry
+        minus the one the accelerometer's levelled specific force gives, less its mean over each
+        bias block (``INERTIAL_BIAS_BLOCK_S``, over every window with an accelerometer).
+
+        Why: the accelerometer measures every horizontal force the tilt does not give (drag, wind,
+        turbulence), so this residual holds none of them: what is left is how the flow's velocity
+        is read (scale, range offset, turn, delay, lever arm), with the accelerometer's noise. The
+        fit does not use it: it is the flow group's independent check (``accelerometer_z``). A
+        constant accelerometer bias is a constant here, taken out per block.
+
+        Why only the windows that accelerate: in a hover the vehicle's motion is mostly the loop's
+        answer to the flow's own noise (a count that flips moves the velocity, the command, the
+        tilt and then the vehicle), so a window's velocity change is correlated with the flow noise
+        at its start, which is the residual's. A window whose acceleration stands
+        ``INERTIAL_ACTIVE_TIMES_NOISE`` x the noise above it moves by the setpoints or the air."""
+        valid, dv_acc, blocks, active = self._inertial_constants()
+        if len(valid) == 0:
+            return np.zeros((2, 0))
+        dv, _dx = self._odometry_window_changes(p)
+        e = (dv[:, valid] - dv_acc) / self._span[valid]
+        nb = int(blocks.max()) + 1
+        count = np.bincount(blocks, minlength=nb)
+        means = np.stack([np.bincount(blocks, weights=row, minlength=nb) / count for row in e])
+        return (e - means[:, blocks])[:, active]
 
     def _set_flow_windows(self, W: np.ndarray, U: np.ndarray | None = None) -> None:
         """The flow channels' windows W (n_windows, L1) of frame indices, and their constants;

@@ -622,6 +622,44 @@ class FlowGroupState:
         return [none, none, on, on]
 
 
+#: the accelerometer checks the flow group's effects (``accelerometer_z``) with at least this many
+#: inertial rows (force windows that accelerate), in time blocks of this long (s)
+ACCEL_CHECK_MIN_ROWS = 8
+ACCEL_CHECK_BLOCK_S = 10.0
+
+
+def accelerometer_z(fp: FlowProblem, p_with: np.ndarray, p_without: np.ndarray) -> tuple[float, int]:
+    """The accelerometer's verdict on the change from ``p_without`` to ``p_with``, as a normal z,
+    and its rows (``FlowProblem.inertial_residual``: the flow's odometry against the accelerometer's
+    strapdown velocity over the windows that accelerate); NaN, 0 with fewer than
+    ``ACCEL_CHECK_MIN_ROWS`` rows or where the two models read the same there (a force effect).
+
+    The fit does not use these rows, so they are held out as a whole. With d = e_without - e_with,
+    the change the effect makes there, the gain G = sum(e_without^2 - e_with^2) / sigma^2 is
+    +sum(d^2) / sigma^2 + 2 sum(d e_with) / sigma^2 when the effect is real (e_with is noise) and
+    -sum(d^2) / sigma^2 + 2 sum(d e_without) / sigma^2 when it is not (e_without is noise). Its
+    noise's variance V is taken over time blocks (``block_meat``, as ``Selector.heldout_z`` does)
+    from d times whichever residual is the noise: the smaller of the two estimates (the other holds
+    d itself, which would bound |z| by about half the root of the number of blocks); sigma per axis
+    likewise, the smaller robust scale. z = G / (2 sqrt(V)): far above 0 confirms the effect, far
+    below contradicts it."""
+    a = fp.inertial_residual(p_with)
+    if a.shape[1] < ACCEL_CHECK_MIN_ROWS:
+        return math.nan, 0
+    b = fp.inertial_residual(p_without)
+    d = b - a
+    sigma = np.array([max(min(robust_std(x), robust_std(y)), 1e-4) for x, y in zip(a, b, strict=True)])[:, None]
+    if not np.any(np.abs(d) > 1e-3 * sigma):
+        return math.nan, 0
+    gain = float(np.sum((b * b - a * a) / sigma ** 2))
+    t = 0.5 * (fp.force.t_start_s + fp.force.t_end_s)[fp.inertial_rows]
+    blk = np.floor((t - t.min()) / ACCEL_CHECK_BLOCK_S).astype(int)
+    v = min(float(block_meat(np.bincount(blk, weights=np.sum(d * e / sigma ** 2, axis=0)))) for e in (a, b))
+    if not v > 0.0:
+        return math.nan, 0
+    return gain / (2.0 * math.sqrt(v)), a.shape[1]
+
+
 def _positive_lag(p: dict[str, float]) -> str | None:
     return "a gyro ahead of the attitude (negative lag) is not a filter" if p["tau"] <= 0 else None
 
@@ -1302,7 +1340,8 @@ def flow_group(data: FlightData, cfg: Config, gyro_lag_s: float = 0.0, p_anchor:
             ("flow_lever_arm", ("rz",), None),
             ("wind_force", ("fx", "fy"), None)) if e != "flow_lever_arm" or lever_arm_observable(data)],
         linear=("b", "fx", "fy", "c"), search=state.search, state=state.as_dict, searched_effect="wind_force",
-        null_pvalue=state.null_pvalue, active_rows=state.active_rows, instrument=instrument)
+        null_pvalue=state.null_pvalue, active_rows=state.active_rows, instrument=instrument,
+        check=lambda p_with, p_without: accelerometer_z(base, p_with, p_without))
     stream = ROTATION_SOURCES[chosen]
     if stream is not None:
         bound = STAMP_ALIGN_SIGMAS * timing_sigma_s(data, "flow", stream)

@@ -255,7 +255,9 @@ def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
         lines.append(f"- evidence: Wald z = {ev.get('wald_z', math.nan):.1f}, paired held-out t = "
                      f"{ev.get('cv_t', math.nan):.1f}, ΔBIC = {ev.get('delta_bic', math.nan):+.0f}"
                      + (" (at the fastest the frames resolve: judged by its held-out z, the Wald z has no "
-                        "meaning at that bound)" if ev.get("at_resolution_bound") else ""))
+                        "meaning at that bound)" if ev.get("at_resolution_bound") else "")
+                     + (f"; the accelerometer, which the fit does not use, z = {ev['accelerometer_z']:.1f} over "
+                        f"{ev.get('accelerometer_rows', 0)} windows" if "accelerometer_z" in ev else ""))
         if f.where:
             lines.append("- where it acts: " + "; ".join(f"{w.channel} {w.start_s:.1f}–{w.end_s:.1f} s"
                                                          for w in f.where))

@@ -115,6 +115,11 @@ class Settings:
     #: forward-selection steps at most (each adds one effect or a pair; a set of effects is never
     #: visited twice, so the selection ends even without this cap)
     max_steps: int = 12
+    #: ``Group.check``: an effect whose independent check's z is at most this is contradicted by it
+    check_veto_z: float = -2.0
+    #: ``Group.check``: an effect whose independent check's z is at least this (and whose own
+    #: held-out gain is positive) passes the held-out test: a sensor the fit did not use confirms it
+    check_confirm_z: float = 3.0
     #: wall-clock budget of one group's selection (s); past it the selection keeps what it has
     #: chosen and says so
     time_budget_s: float = 20.0
@@ -176,6 +181,14 @@ class Group:
     #: fitted by the instrumental-variable normal equations Z'J d = -Z'r, which that noise does not
     #: attenuate as it does J'J, as long as the instrument's noise is independent of both
     instrument: Callable[[np.ndarray], list[np.ndarray | None]] | None = None
+    #: optional independent check: ``check(p_with, p_without)`` gives the z of a channel the fit
+    #: does not use (the flow group's accelerometer, ``groups.accelerometer_z``) for the change
+    #: from p_without to p_with (p_with with the effect's parameters at the nominal: the effect's
+    #: own part of the fit), and how many rows it has (NaN, 0 when it cannot tell). An exact
+    #: comparison is turned down when it says ``Settings.check_veto_z`` or less (the sensor
+    #: contradicts the effect), and passes the held-out test with ``check_confirm_z`` or more
+    #: when its own held-out gain is positive (``Selector.compare``)
+    check: Callable[[np.ndarray, np.ndarray], tuple[float, int]] | None = None
 
     def index(self, names: Sequence[str]) -> list[int]:
         return [self.params.index(n) for n in names]
@@ -230,6 +243,11 @@ class Comparison:
     #: ``Candidate.resolution_upper``)
     wald_z: float = math.nan
     at_resolution_bound: bool = False
+    #: ``Group.check``'s z and rows (NaN, 0: not checked)
+    check_z: float = math.nan
+    check_rows: int = 0
+    #: ``Group.check``'s z against the model refitted without the effect (NaN: not asked)
+    check_refit_z: float = math.nan
 
     @property
     def improvement_pct(self) -> float:
@@ -924,7 +942,21 @@ class Selector:
         primary = int(np.argmax(np.where(acts, rel, -np.inf)))
         comp = Comparison("+".join(effects), with_, without, z, cv_t, with_.bic() - without.bic(), before, after,
                           primary, null_p=null_p, wald_z=z_wald, at_resolution_bound=resolved)
+        if exact and not localised and self.g.check is not None:
+            # the effect's own part of the fit: its parameters back at the nominal, the rest as fitted
+            # with it (``without``'s refit moves the others too, which is not this effect's doing)
+            p_off = with_.p.copy()
+            p_off[idx] = self.g.nominal[idx]
+            comp.check_z, comp.check_rows = self.g.check(with_.p, p_off)
+            # a confirmation must also hold against the model refitted without the effect: two
+            # effects that cancel each other (a scale and a range offset) each look needed given
+            # the other, and refitted without one the other takes its place
+            if comp.check_z >= self.s.check_confirm_z:
+                comp.check_refit_z = self.g.check(with_.p, without.p)[0]
         reasons = []
+        if comp.check_z <= self.s.check_veto_z:
+            reasons.append(f"the accelerometer contradicts it: over {comp.check_rows} windows it reads the flow's "
+                           f"velocity worse with it (z = {comp.check_z:.1f})")
         if localised and not null_p <= self.s.null_p_max:
             reasons.append(f"a window this strong is found in this recording's own noise too "
                            f"(p = {null_p:.2g} > {self.s.null_p_max:g})")
@@ -934,8 +966,9 @@ class Selector:
             reasons.append(f"too short to judge on held-out data: {len(diff)} time blocks of "
                            f"{self.block_s:.1f} s (at least {self.s.min_blocks} needed)")
         elif exact and not localised and not cv_t >= t_need:
-            reasons.append(f"held-out improvement within what the residual's own noise gives over the time blocks "
-                           f"(z = {cv_t:.1f} < {t_need:g})")
+            if not (cv_t > 0 and min(comp.check_z, comp.check_refit_z) >= self.s.check_confirm_z):  # else confirmed
+                reasons.append(f"held-out improvement within what the residual's own noise gives over the time "
+                               f"blocks (z = {cv_t:.1f} < {t_need:g})")
         elif not cv_t >= t_need:
             over = "time blocks where it acts" if exact else "folds"
             reasons.append(f"held-out improvement not consistent over {over} (t = {cv_t:.1f} < {t_need:g})")
