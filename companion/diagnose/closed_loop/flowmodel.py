@@ -63,11 +63,11 @@ BRIDGED_SHARE_MAX = 0.25
 BRIDGED_RUN_MAX = 3
 
 
-#: the inertial channels (``FlowProblem.inertial_residual``) take an accelerometer bias of their own
+#: the inertial rows (``FlowProblem.inertial_residual``) take an accelerometer bias of their own
 #: per block of this long within a segment (s): a bias drifts with temperature over a long flight
 INERTIAL_BIAS_BLOCK_S = 60.0
-#: the inertial channels' rows are the windows whose mean acceleration (the accelerometer's) is at
-#: least this many times the channels' noise on either axis (``FlowProblem.inertial_residual``)
+#: the inertial rows are the windows whose mean acceleration (the accelerometer's) is at least
+#: this many times the rows' noise on either axis (``FlowProblem.inertial_residual``)
 INERTIAL_ACTIVE_TIMES_NOISE = 10.0
 
 
@@ -380,11 +380,11 @@ class FlowProblem:
         #: constant residual offsets set by ``anchor`` (None: this problem's own nominal residual)
         self._flow_offset: np.ndarray | None = None
         self._force_offset: np.ndarray | None = None
-        #: the inertial channels' constants (``_set_inertial``, made on first use)
+        #: the inertial rows' constants (``_inertial_constants``, made on first use)
         self._inertial: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def _inertial_constants(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The inertial channels' constants (``inertial_residual``), made on first use: the force
+        """The inertial rows' constants (``inertial_residual``), made on first use: the force
         windows whose frames, boundary averages included, all have an accelerometer reading
         (indices into ``force.idx``); per such window the velocity change the accelerometer gives
         (m/s, (2, n)): its specific force (body FRD) turned level by the recorded attitude, a
@@ -428,7 +428,7 @@ class FlowProblem:
 
     @property
     def inertial_rows(self) -> np.ndarray:
-        """The force windows (indices into ``force.idx``) that are the inertial channels' rows."""
+        """The force windows (indices into ``force.idx``) that are the inertial rows."""
         valid, _dv, _blocks, active = self._inertial_constants()
         return valid[active]
 
