@@ -416,12 +416,10 @@ class FlowProblem:
         first = {k: float(t0[seg == k].min()) for k in np.unique(seg)}
         block = np.floor((t0 - np.array([first[k] for k in seg])) / INERTIAL_BIAS_BLOCK_S).astype(int)
         blocks = np.unique(np.stack([seg, block], axis=1), axis=0, return_inverse=True)[1].ravel()
-        self._inertial = (valid, dv, blocks, np.ones(len(valid), dtype=bool))
-        # the rows: windows whose acceleration stands clear of the channels' noise (the nominal
+        # the rows: windows whose acceleration stands clear of the rows' noise (the nominal
         # residual's robust scale, per axis): in a hover the motion is largely the loop's answer
         # to the flow's own noise, which the residual holds too
-        e = self.inertial_residual(NOMINAL)
-        noise = np.array([robust_std(x) for x in e])
+        noise = np.array([robust_std(x) for x in self._inertial_errors(NOMINAL, valid, dv, blocks)])
         a = np.abs(dv) / self._span[valid]
         self._inertial = (valid, dv, blocks, np.any(a >= INERTIAL_ACTIVE_TIMES_NOISE * noise[:, None], axis=0))
         return self._inertial
@@ -453,12 +451,18 @@ class FlowProblem:
         valid, dv_acc, blocks, active = self._inertial_constants()
         if len(valid) == 0:
             return np.zeros((2, 0))
+        return self._inertial_errors(p, valid, dv_acc, blocks)[:, active]
+
+    def _inertial_errors(self, p: np.ndarray, valid: np.ndarray, dv_acc: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+        """``inertial_residual`` over every window with an accelerometer (``valid``), before the
+        active ones are picked: the odometry's mean acceleration minus the accelerometer's
+        (``dv_acc``), less its mean per bias block."""
         dv, _dx = self._odometry_window_changes(p)
         e = (dv[:, valid] - dv_acc) / self._span[valid]
         nb = int(blocks.max()) + 1
         count = np.bincount(blocks, minlength=nb)
         means = np.stack([np.bincount(blocks, weights=row, minlength=nb) / count for row in e])
-        return (e - means[:, blocks])[:, active]
+        return e - means[:, blocks]
 
     def _set_flow_windows(self, W: np.ndarray, U: np.ndarray | None = None) -> None:
         """The flow channels' windows W (n_windows, L1) of frame indices, and their constants;

@@ -246,7 +246,8 @@ class Comparison:
     #: ``Group.check``'s z and rows (NaN, 0: not checked)
     check_z: float = math.nan
     check_rows: int = 0
-    #: ``Group.check``'s z against the model refitted without the effect (NaN: not asked)
+    #: ``Group.check``'s z against the model refitted without the effect (NaN: not asked; it is
+    #: asked only when a confirmation would pass a held-out test that failed)
     check_refit_z: float = math.nan
 
     @property
@@ -948,11 +949,6 @@ class Selector:
             p_off = with_.p.copy()
             p_off[idx] = self.g.nominal[idx]
             comp.check_z, comp.check_rows = self.g.check(with_.p, p_off)
-            # a confirmation must also hold against the model refitted without the effect: two
-            # effects that cancel each other (a scale and a range offset) each look needed given
-            # the other, and refitted without one the other takes its place
-            if comp.check_z >= self.s.check_confirm_z:
-                comp.check_refit_z = self.g.check(with_.p, without.p)[0]
         reasons = []
         if comp.check_z <= self.s.check_veto_z:
             reasons.append(f"the accelerometer contradicts it: over {comp.check_rows} windows it reads the flow's "
@@ -966,6 +962,11 @@ class Selector:
             reasons.append(f"too short to judge on held-out data: {len(diff)} time blocks of "
                            f"{self.block_s:.1f} s (at least {self.s.min_blocks} needed)")
         elif exact and not localised and not cv_t >= t_need:
+            if cv_t > 0 and comp.check_z >= self.s.check_confirm_z and self.g.check is not None:
+                # a confirmation must also hold against the model refitted without the effect: two
+                # effects that cancel each other (a scale and a range offset) each look needed given
+                # the other, and refitted without one the other takes its place
+                comp.check_refit_z = self.g.check(with_.p, without.p)[0]
             if not (cv_t > 0 and min(comp.check_z, comp.check_refit_z) >= self.s.check_confirm_z):  # else confirmed
                 reasons.append(f"held-out improvement within what the residual's own noise gives over the time "
                                f"blocks (z = {cv_t:.1f} < {t_need:g})")
